@@ -1,0 +1,41 @@
+//! `nppp`: the command-line tool. Each subcommand is one stage of the
+//! pipeline (gen, train, bake, render, bench) or a utility (info, mesh).
+
+mod render_cmd;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "nppp", version, about = "Path tracing with neural probabilistic path prediction")]
+struct Cli {
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a scene to an EXR (and optionally a PNG preview).
+    Render(render_cmd::RenderArgs),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    if let Err(e) = run(cli) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    if let Some(t) = cli.threads {
+        anyhow::ensure!(t >= 1, "--threads must be at least 1");
+        rayon::ThreadPoolBuilder::new().num_threads(t).build_global()?;
+    }
+    match cli.command {
+        Command::Render(a) => render_cmd::run(&a),
+    }
+}

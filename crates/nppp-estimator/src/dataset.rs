@@ -1,0 +1,1164 @@
+//! The training-data file: input rays with their mask label and, for hits,
+//! k exits each (layout: `FORMAT.md`).
+//!
+//! The thesis stored 200k rays x k = 512 in 10 GiB. Here an exit takes about
+//! 16 bytes before compression (octahedral unit vectors in 2 x u16, colours
+//! as f16, all-zero colours as a flag bit, bounces in one byte), columns are
+//! grouped per chunk so that deflate finds the repetition in flags, bounces
+//! and throughputs, and every chunk carries its own length and CRC so a
+//! trainer can stream (or randomly access) chunks in bounded memory.
+
+use crate::exit::Exit;
+use nppp_geom::{BoundingSphere, SpherePair, Vec3};
+use serde::{Deserialize, Serialize};
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+pub const DATASET_MAGIC: [u8; 8] = *b"NPPPDAT\0";
+pub const DATASET_VERSION: u32 = 1;
+const CHUNK_MAGIC: [u8; 4] = *b"CHNK";
+const END_MAGIC: [u8; 4] = *b"NEND";
+const CHUNK_HEADER_LEN: usize = 28;
+const TRAILER_LEN: usize = 40;
+const INDEX_ENTRY_LEN: usize = 16;
+const MAX_HEADER_LEN: usize = 1 << 20;
+/// Rays per chunk by default: big enough for deflate and for few seeks,
+/// small enough that a chunk of misses is not a whole epoch.
+pub const DEFAULT_CHUNK_RAYS: u32 = 4096;
+/// A chunk is closed early once its encoded columns reach this size, so
+/// memory stays bounded whatever k and the hit rate are.
+const CHUNK_TARGET_BYTES: usize = 32 << 20;
+/// Readers refuse chunks that claim more than this (a writer never makes
+/// one: the target above plus one ray of at most `MAX_K` exits).
+const MAX_CHUNK_RAYS: u32 = 1 << 20;
+const MAX_CHUNK_RAW: usize = 256 << 20;
+pub const MAX_K: u32 = 1 << 20;
+/// Worst-case angle (radians) between a unit vector and its stored 2 x u16
+/// octahedral encoding, with a margin over the 1.27e-4 rad (0.0073 degrees)
+/// measured by a test over 200k random directions.
+pub const OCT_MAX_ANGLE: f32 = 1.5e-4;
+
+/// Chunk payload encodings.
+const ENC_RAW: u32 = 0;
+const ENC_DEFLATE: u32 = 1;
+
+/// What the data was generated for and how.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DatasetHeader {
+    pub mesh_name: String,
+    pub mesh_hash: u64,
+    pub material_name: String,
+    pub material_hash: u64,
+    /// The material's full description, so a trainer can record exactly what
+    /// it learned without the scene file.
+    pub material_json: String,
+    pub sphere: BoundingSphere,
+    /// Exits per hit ray.
+    pub k: u32,
+    pub seed: u64,
+    /// The generator's internal bounce cap; stored bounces saturate here.
+    pub max_internal_bounces: u32,
+}
+
+/// One input ray: its chord, whether it hits the mesh, and for a hit its k exits.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RayRecord {
+    pub pair: SpherePair,
+    pub hit: bool,
+    pub exits: Vec<Exit>,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct DatasetSummary {
+    pub path: PathBuf,
+    pub rays: u64,
+    pub hits: u64,
+    pub exits: u64,
+    pub chunks: u64,
+    /// The whole file.
+    pub file_bytes: u64,
+    /// Chunk payloads before compression.
+    pub raw_bytes: u64,
+}
+
+impl DatasetSummary {
+    pub fn bytes_per_exit(&self) -> f64 {
+        if self.exits == 0 { 0.0 } else { self.file_bytes as f64 / self.exits as f64 }
+    }
+}
+
+#[derive(Debug, Error)]
+pub enum DatasetError {
+    #[error("{}: {source}", path.display())]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{}: not an nppp training-data file (wrong magic; expected \"NPPPDAT\\0\")", path.display())]
+    Magic { path: PathBuf },
+    #[error("{}: version {found} not supported (this build reads {DATASET_VERSION})", path.display())]
+    Version { path: PathBuf, found: u32 },
+    #[error("{}: invalid header: {what}", path.display())]
+    Header { path: PathBuf, what: String },
+    #[error("{}: {what}", path.display())]
+    Index { path: PathBuf, what: String },
+    #[error("{}: chunk {chunk} (at byte {offset}): {what}", path.display())]
+    Chunk { path: PathBuf, chunk: u64, offset: u64, what: String },
+    #[error("{}: ray {ray}: {what}", path.display())]
+    Record { path: PathBuf, ray: u64, what: String },
+}
+
+/// Options of a [`DatasetWriter`].
+#[derive(Clone, Copy, Debug)]
+pub struct WriterOptions {
+    pub chunk_rays: u32,
+    /// Deflate each chunk (kept raw when that does not make it smaller).
+    pub compress: bool,
+}
+
+impl Default for WriterOptions {
+    fn default() -> Self {
+        Self { chunk_rays: DEFAULT_CHUNK_RAYS, compress: true }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Scalar encodings
+
+/// f32 -> IEEE half bits, round to nearest even; values at or above 65504
+/// saturate to the largest finite half (a training target must stay finite),
+/// negative and NaN become 0 (the writer rejects those before this point).
+pub fn f32_to_f16(x: f32) -> u16 {
+    if !(x > 0.0) {
+        return 0;
+    }
+    if x >= 65504.0 {
+        return 0x7bff;
+    }
+    if x < 6.103_515_6e-5 {
+        // Subnormal half: units of 2^-24; 1024 units is the smallest normal.
+        return (x * 16_777_216.0).round_ties_even() as u16;
+    }
+    let a = x.to_bits();
+    let mant = a & 0x7f_ffff;
+    let exp = (a >> 23) + 15 - 127;
+    let mut h = (exp << 10) | (mant >> 13);
+    let rem = mant & 0x1fff;
+    if rem > 0x1000 || (rem == 0x1000 && h & 1 == 1) {
+        h += 1;
+    }
+    h as u16
+}
+
+pub fn f16_to_f32(h: u16) -> f32 {
+    let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };
+    let exp = ((h >> 10) & 0x1f) as u32;
+    let mant = (h & 0x3ff) as u32;
+    match exp {
+        0 => sign * mant as f32 * (1.0 / 16_777_216.0),
+        31 => sign * if mant == 0 { f32::INFINITY } else { f32::NAN },
+        _ => sign * f32::from_bits(((exp + 112) << 23) | (mant << 13)),
+    }
+}
+
+#[inline]
+fn sign_nz(x: f32) -> f32 {
+    if x >= 0.0 { 1.0 } else { -1.0 }
+}
+
+fn oct_decode_f(px: f32, py: f32) -> Vec3 {
+    let z = 1.0 - px.abs() - py.abs();
+    let (x, y) = if z < 0.0 { ((1.0 - py.abs()) * sign_nz(px), (1.0 - px.abs()) * sign_nz(py)) } else { (px, py) };
+    Vec3::new(x, y, z).normalize()
+}
+
+/// Unit vector from its octahedral encoding.
+pub fn oct_decode(e: [u16; 2]) -> Vec3 {
+    let f = |q: u16| q as f32 * (2.0 / 65535.0) - 1.0;
+    oct_decode_f(f(e[0]), f(e[1]))
+}
+
+/// Octahedral encoding of a unit vector in 2 x 16 bits. Of the four
+/// roundings around the exact point the one that decodes closest to `v` is
+/// kept ("precise" variant): it roughly halves the worst-case error.
+pub fn oct_encode(v: Vec3) -> [u16; 2] {
+    let n = v / (v.x.abs() + v.y.abs() + v.z.abs());
+    let (px, py) = if n.z < 0.0 { ((1.0 - n.y.abs()) * sign_nz(n.x), (1.0 - n.x.abs()) * sign_nz(n.y)) } else { (n.x, n.y) };
+    let to_q = |p: f32| ((p.clamp(-1.0, 1.0) + 1.0) * (65535.0 / 2.0)).clamp(0.0, 65535.0);
+    let (qx, qy) = (to_q(px), to_q(py));
+    let vn = v.normalize();
+    let mut best = [qx.round() as u16, qy.round() as u16];
+    let mut best_dot = -2.0f32;
+    for ax in [qx.floor(), qx.ceil()] {
+        for ay in [qy.floor(), qy.ceil()] {
+            let cand = [ax as u16, ay as u16];
+            let d = oct_decode(cand).dot(vn);
+            if d > best_dot {
+                best_dot = d;
+                best = cand;
+            }
+        }
+    }
+    best
+}
+
+/// Bytes per stored bounce count: the narrowest that holds the cap.
+fn bounce_width(max_internal_bounces: u32) -> usize {
+    match max_internal_bounces {
+        0..=0xff => 1,
+        0x100..=0xffff => 2,
+        _ => 4,
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Chunk payload
+
+/// The columns of one chunk (payload layout in `FORMAT.md`).
+#[derive(Default)]
+struct Columns {
+    rays: u32,
+    hits: u32,
+    pairs: Vec<u8>,
+    hit_bits: Vec<u8>,
+    positions: Vec<u8>,
+    directions: Vec<u8>,
+    flags: Vec<u8>,
+    bounces: Vec<u8>,
+    throughput: Vec<u8>,
+    radiance: Vec<u8>,
+}
+
+impl Columns {
+    /// Empties the columns but keeps their capacity for the next chunk.
+    fn clear(&mut self) {
+        self.rays = 0;
+        self.hits = 0;
+        for c in self.columns_mut() {
+            c.clear();
+        }
+    }
+
+    fn columns_mut(&mut self) -> [&mut Vec<u8>; 8] {
+        [
+            &mut self.pairs,
+            &mut self.hit_bits,
+            &mut self.positions,
+            &mut self.directions,
+            &mut self.flags,
+            &mut self.bounces,
+            &mut self.throughput,
+            &mut self.radiance,
+        ]
+    }
+
+    fn bytes(&self) -> usize {
+        self.pairs.len()
+            + self.hit_bits.len()
+            + self.positions.len()
+            + self.directions.len()
+            + self.flags.len()
+            + self.bounces.len()
+            + self.throughput.len()
+            + self.radiance.len()
+    }
+
+    fn push(&mut self, rec: &RayRecord, max_b: u32, bw: usize) {
+        let r = self.rays as usize;
+        if r.is_multiple_of(8) {
+            self.hit_bits.push(0);
+        }
+        if rec.hit {
+            self.hit_bits[r / 8] |= 1 << (r % 8);
+            self.hits += 1;
+        }
+        self.rays += 1;
+        for x in rec.pair.0 {
+            self.pairs.extend_from_slice(&x.to_le_bytes());
+        }
+        for e in &rec.exits {
+            for q in oct_encode(e.position) {
+                self.positions.extend_from_slice(&q.to_le_bytes());
+            }
+            for q in oct_encode(e.direction) {
+                self.directions.extend_from_slice(&q.to_le_bytes());
+            }
+            let t = [e.throughput.x, e.throughput.y, e.throughput.z].map(f32_to_f16);
+            let l = [e.radiance.x, e.radiance.y, e.radiance.z].map(f32_to_f16);
+            let tn = t != [0; 3];
+            let ln = l != [0; 3];
+            self.flags.push(tn as u8 | (ln as u8) << 1);
+            if tn {
+                t.iter().for_each(|h| self.throughput.extend_from_slice(&h.to_le_bytes()));
+            }
+            if ln {
+                l.iter().for_each(|h| self.radiance.extend_from_slice(&h.to_le_bytes()));
+            }
+            let b = e.bounces.min(max_b);
+            self.bounces.extend_from_slice(&b.to_le_bytes()[..bw]);
+        }
+    }
+
+    fn payload(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.bytes());
+        for c in [&self.pairs, &self.hit_bits, &self.positions, &self.directions, &self.flags, &self.bounces, &self.throughput, &self.radiance] {
+            out.extend_from_slice(c);
+        }
+        out
+    }
+}
+
+/// Splits a payload back into records; `None` names nothing, the caller
+/// reports "payload does not match its ray and hit counts".
+fn decode_payload(p: &[u8], rays: u32, hits: u32, k: u32, bw: usize) -> Result<Vec<RayRecord>, String> {
+    let rays = rays as usize;
+    let n_exits = hits as usize * k as usize;
+    let mut at = 0usize;
+    let mut take = |n: usize| -> Result<&[u8], String> {
+        let s = at.checked_add(n).and_then(|end| p.get(at..end)).ok_or_else(|| format!("payload ends early ({} bytes)", p.len()))?;
+        at += n;
+        Ok(s)
+    };
+    let pairs = take(16 * rays)?;
+    let hit_bits = take(rays.div_ceil(8))?;
+    let positions = take(4 * n_exits)?;
+    let directions = take(4 * n_exits)?;
+    let flags = take(n_exits)?;
+    let bounces = take(bw * n_exits)?;
+    let n_t = flags.iter().filter(|f| *f & 1 != 0).count();
+    let n_l = flags.iter().filter(|f| *f & 2 != 0).count();
+    let thr = take(6 * n_t)?;
+    let rad = take(6 * n_l)?;
+    if at != p.len() {
+        return Err(format!("{} unexpected bytes after the last column", p.len() - at));
+    }
+    let counted = (0..rays).filter(|r| hit_bits[r / 8] >> (r % 8) & 1 == 1).count();
+    if counted != hits as usize {
+        return Err(format!("hit bits say {counted} hits, chunk header {hits}"));
+    }
+    let u16_at = |s: &[u8], i: usize| u16::from_le_bytes([s[2 * i], s[2 * i + 1]]);
+    let f32_at = |s: &[u8], i: usize| f32::from_le_bytes([s[4 * i], s[4 * i + 1], s[4 * i + 2], s[4 * i + 3]]);
+    let color = |s: &[u8], i: usize| Vec3::new(f16_to_f32(u16_at(s, 3 * i)), f16_to_f32(u16_at(s, 3 * i + 1)), f16_to_f32(u16_at(s, 3 * i + 2)));
+    let mut out = Vec::with_capacity(rays);
+    let (mut e, mut ti, mut li) = (0usize, 0usize, 0usize);
+    for r in 0..rays {
+        let pair = SpherePair([f32_at(pairs, 4 * r), f32_at(pairs, 4 * r + 1), f32_at(pairs, 4 * r + 2), f32_at(pairs, 4 * r + 3)]);
+        let hit = hit_bits[r / 8] >> (r % 8) & 1 == 1;
+        let mut exits = Vec::with_capacity(if hit { k as usize } else { 0 });
+        if hit {
+            for _ in 0..k {
+                let f = flags[e];
+                let throughput = if f & 1 != 0 {
+                    ti += 1;
+                    color(thr, ti - 1)
+                } else {
+                    Vec3::ZERO
+                };
+                let radiance = if f & 2 != 0 {
+                    li += 1;
+                    color(rad, li - 1)
+                } else {
+                    Vec3::ZERO
+                };
+                let mut b = [0u8; 4];
+                b[..bw].copy_from_slice(&bounces[bw * e..bw * (e + 1)]);
+                exits.push(Exit {
+                    position: oct_decode([u16_at(positions, 2 * e), u16_at(positions, 2 * e + 1)]),
+                    direction: oct_decode([u16_at(directions, 2 * e), u16_at(directions, 2 * e + 1)]),
+                    throughput,
+                    radiance,
+                    bounces: u32::from_le_bytes(b),
+                });
+                e += 1;
+            }
+        }
+        out.push(RayRecord { pair, hit, exits });
+    }
+    Ok(out)
+}
+
+// ---------------------------------------------------------------------------
+// Header
+
+/// The JSON header: the public header plus the sphere's exact bit patterns
+/// (JSON floats are for people; the bake copies the sphere from here and it
+/// must be bit-identical to what the generator used).
+#[derive(Serialize, Deserialize)]
+struct HeaderJson {
+    #[serde(flatten)]
+    header: DatasetHeader,
+    sphere_bits: [u32; 4],
+}
+
+fn header_bytes(h: &DatasetHeader) -> Vec<u8> {
+    let s = &h.sphere;
+    let j = HeaderJson { header: h.clone(), sphere_bits: [s.center.x, s.center.y, s.center.z, s.radius].map(f32::to_bits) };
+    // A JSON value made of strings, integers and finite floats always serializes.
+    serde_json::to_vec(&j).unwrap_or_default()
+}
+
+fn check_header(h: &DatasetHeader) -> Result<(), String> {
+    if h.k == 0 || h.k > MAX_K {
+        return Err(format!("k = {} (1 to {MAX_K} allowed)", h.k));
+    }
+    let s = &h.sphere;
+    if !(s.center.is_finite() && s.radius.is_finite() && s.radius > 0.0) {
+        return Err(format!("bounding sphere {s:?} is not finite with a positive radius"));
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------
+// Writer
+
+pub struct DatasetWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    file: Option<BufWriter<File>>,
+    header: DatasetHeader,
+    options: WriterOptions,
+    bounce_width: usize,
+    offset: u64,
+    cols: Columns,
+    index: Vec<(u64, u32, u32)>,
+    rays: u64,
+    hits: u64,
+    raw_bytes: u64,
+}
+
+impl DatasetWriter {
+    pub fn create(path: &Path, header: DatasetHeader) -> Result<Self, DatasetError> {
+        Self::create_with(path, header, WriterOptions::default())
+    }
+
+    /// Writes to a temporary file next to `path`; [`Self::finish`] renames
+    /// it into place, so an interrupted run never leaves a file that looks
+    /// complete (and never destroys the previous good one).
+    pub fn create_with(path: &Path, header: DatasetHeader, options: WriterOptions) -> Result<Self, DatasetError> {
+        check_header(&header).map_err(|what| DatasetError::Header { path: path.into(), what })?;
+        let tmp = crate::baked::temp_path(path);
+        let io = |source| DatasetError::Io { path: path.into(), source };
+        let mut file = BufWriter::with_capacity(1 << 20, File::create(&tmp).map_err(io)?);
+        let json = header_bytes(&header);
+        let mut prefix = Vec::with_capacity(20 + json.len());
+        prefix.extend_from_slice(&DATASET_MAGIC);
+        prefix.extend_from_slice(&DATASET_VERSION.to_le_bytes());
+        prefix.extend_from_slice(&(json.len() as u32).to_le_bytes());
+        prefix.extend_from_slice(&json);
+        let crc = crc32fast::hash(&prefix[8..]);
+        prefix.extend_from_slice(&crc.to_le_bytes());
+        file.write_all(&prefix).map_err(io)?;
+        let bounce_width = bounce_width(header.max_internal_bounces);
+        let options = WriterOptions { chunk_rays: options.chunk_rays.clamp(1, MAX_CHUNK_RAYS), ..options };
+        Ok(Self {
+            path: path.into(),
+            tmp,
+            file: Some(file),
+            header,
+            options,
+            bounce_width,
+            offset: prefix.len() as u64,
+            cols: Columns::default(),
+            index: Vec::new(),
+            rays: 0,
+            hits: 0,
+            raw_bytes: 0,
+        })
+    }
+
+    pub fn header(&self) -> &DatasetHeader {
+        &self.header
+    }
+
+    /// Rays written so far.
+    pub fn len(&self) -> u64 {
+        self.rays
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.rays == 0
+    }
+
+    pub fn write(&mut self, rec: &RayRecord) -> Result<(), DatasetError> {
+        self.check_record(rec).map_err(|what| DatasetError::Record { path: self.path.clone(), ray: self.rays, what })?;
+        self.cols.push(rec, self.header.max_internal_bounces, self.bounce_width);
+        self.rays += 1;
+        self.hits += rec.hit as u64;
+        if self.cols.rays >= self.options.chunk_rays || self.cols.bytes() >= CHUNK_TARGET_BYTES {
+            self.flush_chunk()?;
+        }
+        Ok(())
+    }
+
+    fn check_record(&self, rec: &RayRecord) -> Result<(), String> {
+        let want = if rec.hit { self.header.k as usize } else { 0 };
+        if rec.exits.len() != want {
+            return Err(format!("{} exits for a {} (k = {})", rec.exits.len(), if rec.hit { "hit" } else { "miss" }, self.header.k));
+        }
+        if !rec.pair.0.iter().all(|x| x.is_finite()) {
+            return Err(format!("sphere pair {:?} is not finite", rec.pair.0));
+        }
+        for (i, e) in rec.exits.iter().enumerate() {
+            for (name, v) in [("position", e.position), ("direction", e.direction)] {
+                let l = v.abs().max_element();
+                if !(v.is_finite() && l > 0.0) {
+                    return Err(format!("exit {i}: {name} {v} is not a finite non-zero vector"));
+                }
+            }
+            for (name, v) in [("throughput", e.throughput), ("radiance", e.radiance)] {
+                if !(v.is_finite() && v.min_element() >= 0.0) {
+                    return Err(format!("exit {i}: {name} {v} is not finite and >= 0"));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn flush_chunk(&mut self) -> Result<(), DatasetError> {
+        if self.cols.rays == 0 {
+            return Ok(());
+        }
+        let raw = self.cols.payload();
+        // Level 1: most of the gain at several hundred MB/s, far faster than
+        // the path tracing that produces the data.
+        let z = if self.options.compress { Some(miniz_oxide::deflate::compress_to_vec(&raw, 1)) } else { None };
+        let (enc, stored): (u32, &[u8]) = match &z {
+            Some(z) if z.len() < raw.len() => (ENC_DEFLATE, z),
+            _ => (ENC_RAW, &raw),
+        };
+        let mut head = [0u8; CHUNK_HEADER_LEN];
+        head[..4].copy_from_slice(&CHUNK_MAGIC);
+        for (i, v) in [self.cols.rays, self.cols.hits, enc, stored.len() as u32, raw.len() as u32].into_iter().enumerate() {
+            head[4 + 4 * i..8 + 4 * i].copy_from_slice(&v.to_le_bytes());
+        }
+        let mut h = crc32fast::Hasher::new();
+        h.update(&head[4..24]);
+        h.update(stored);
+        head[24..28].copy_from_slice(&h.finalize().to_le_bytes());
+        let io = |source| DatasetError::Io { path: self.path.clone(), source };
+        let f = self.file.as_mut().ok_or_else(|| io(std::io::Error::other("writer already finished")))?;
+        f.write_all(&head).map_err(io)?;
+        f.write_all(stored).map_err(io)?;
+        self.index.push((self.offset, self.cols.rays, self.cols.hits));
+        self.offset += (CHUNK_HEADER_LEN + stored.len()) as u64;
+        self.raw_bytes += raw.len() as u64;
+        self.cols.clear();
+        Ok(())
+    }
+
+    /// Writes the last chunk, the chunk index and the trailer, then moves the
+    /// file into place.
+    pub fn finish(mut self) -> Result<DatasetSummary, DatasetError> {
+        self.flush_chunk()?;
+        let mut tail = Vec::with_capacity(self.index.len() * INDEX_ENTRY_LEN + TRAILER_LEN);
+        for &(off, rays, hits) in &self.index {
+            tail.extend_from_slice(&off.to_le_bytes());
+            tail.extend_from_slice(&rays.to_le_bytes());
+            tail.extend_from_slice(&hits.to_le_bytes());
+        }
+        for v in [self.offset, self.index.len() as u64, self.rays, self.hits] {
+            tail.extend_from_slice(&v.to_le_bytes());
+        }
+        let crc = crc32fast::hash(&tail);
+        tail.extend_from_slice(&crc.to_le_bytes());
+        tail.extend_from_slice(&END_MAGIC);
+        let io = |source| DatasetError::Io { path: self.path.clone(), source };
+        let f = self.file.take().ok_or_else(|| io(std::io::Error::other("writer already finished")))?;
+        let done = (|| {
+            let mut f = f;
+            f.write_all(&tail)?;
+            let file = f.into_inner().map_err(|e| e.into_error())?;
+            file.sync_all()?;
+            drop(file);
+            std::fs::rename(&self.tmp, &self.path)
+        })();
+        if let Err(e) = done {
+            let _ = std::fs::remove_file(&self.tmp);
+            return Err(io(e));
+        }
+        Ok(DatasetSummary {
+            path: self.path.clone(),
+            rays: self.rays,
+            hits: self.hits,
+            exits: self.hits * self.header.k as u64,
+            chunks: self.index.len() as u64,
+            file_bytes: self.offset + tail.len() as u64,
+            raw_bytes: self.raw_bytes,
+        })
+    }
+}
+
+impl Drop for DatasetWriter {
+    /// A writer dropped without `finish` (an error, a panic) removes its
+    /// temporary file instead of leaving it behind.
+    fn drop(&mut self) {
+        if self.file.take().is_some() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Reader
+
+#[derive(Clone, Copy, Debug)]
+struct ChunkEntry {
+    offset: u64,
+    rays: u32,
+    hits: u32,
+}
+
+/// Anything a data file can be read from (a file, or bytes in memory).
+pub trait ReadSeek: Read + Seek + Send {}
+impl<T: Read + Seek + Send> ReadSeek for T {}
+
+/// Streams a training-data file chunk by chunk.
+pub struct DatasetReader {
+    path: PathBuf,
+    file: Box<dyn ReadSeek>,
+    header: DatasetHeader,
+    index: Vec<ChunkEntry>,
+    index_offset: u64,
+    next: usize,
+    rays: u64,
+    hits: u64,
+}
+
+fn le_u32(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes([b[at], b[at + 1], b[at + 2], b[at + 3]])
+}
+
+fn le_u64(b: &[u8], at: usize) -> u64 {
+    let mut x = [0u8; 8];
+    x.copy_from_slice(&b[at..at + 8]);
+    u64::from_le_bytes(x)
+}
+
+impl DatasetReader {
+    /// Reads and checks the header, the trailer and the chunk index; chunk
+    /// payloads are read (and checked) only when asked for.
+    pub fn open(path: &Path) -> Result<Self, DatasetError> {
+        let io = |source| DatasetError::Io { path: path.into(), source };
+        let f = File::open(path).map_err(io)?;
+        let len = f.metadata().map_err(io)?.len();
+        Self::from_source(Box::new(BufReader::with_capacity(1 << 20, f)), len, path)
+    }
+
+    /// A data set held in memory; `path` only names it in errors.
+    pub fn from_bytes(bytes: Vec<u8>, path: &Path) -> Result<Self, DatasetError> {
+        let len = bytes.len() as u64;
+        Self::from_source(Box::new(std::io::Cursor::new(bytes)), len, path)
+    }
+
+    /// Reads from `file`, which holds `len` bytes.
+    pub fn from_source(mut file: Box<dyn ReadSeek>, len: u64, path: &Path) -> Result<Self, DatasetError> {
+        let p = || path.to_path_buf();
+        let io = |source| DatasetError::Io { path: p(), source };
+        let mut prefix = [0u8; 16];
+        let got = read_up_to(&mut file, &mut prefix).map_err(io)?;
+        if prefix[..got.min(8)] != DATASET_MAGIC[..got.min(8)] {
+            return Err(DatasetError::Magic { path: p() });
+        }
+        if got < 16 {
+            return Err(DatasetError::Index { path: p(), what: format!("truncated: file is {len} bytes, the fixed prefix alone is 16") });
+        }
+        let version = le_u32(&prefix, 8);
+        if version != DATASET_VERSION {
+            return Err(DatasetError::Version { path: p(), found: version });
+        }
+        let hlen = le_u32(&prefix, 12) as usize;
+        if hlen > MAX_HEADER_LEN {
+            return Err(DatasetError::Header { path: p(), what: format!("header length {hlen} is absurd") });
+        }
+        let data_start = 16 + hlen as u64 + 4;
+        if data_start + TRAILER_LEN as u64 > len {
+            return Err(DatasetError::Header { path: p(), what: format!("truncated: header says {hlen} header bytes, file is {len} bytes") });
+        }
+        let mut hbuf = vec![0u8; hlen + 4];
+        file.read_exact(&mut hbuf).map_err(io)?;
+        let mut crc = crc32fast::Hasher::new();
+        crc.update(&prefix[8..16]);
+        crc.update(&hbuf[..hlen]);
+        if crc.finalize() != le_u32(&hbuf, hlen) {
+            return Err(DatasetError::Header { path: p(), what: "checksum mismatch (file corrupted)".into() });
+        }
+        let hj: HeaderJson = serde_json::from_slice(&hbuf[..hlen]).map_err(|e| DatasetError::Header { path: p(), what: e.to_string() })?;
+        let mut header = hj.header;
+        let b = hj.sphere_bits.map(f32::from_bits);
+        header.sphere = BoundingSphere { center: Vec3::new(b[0], b[1], b[2]), radius: b[3] };
+        check_header(&header).map_err(|what| DatasetError::Header { path: p(), what })?;
+
+        // Trailer, then the index it points to.
+        let incomplete = |what: String| DatasetError::Index { path: p(), what };
+        let mut trailer = [0u8; TRAILER_LEN];
+        file.seek(SeekFrom::Start(len - TRAILER_LEN as u64)).map_err(io)?;
+        file.read_exact(&mut trailer).map_err(io)?;
+        if trailer[36..40] != END_MAGIC {
+            return Err(incomplete("no chunk index at the end (file truncated, or its writer did not finish)".into()));
+        }
+        let (index_offset, chunks, rays, hits) = (le_u64(&trailer, 0), le_u64(&trailer, 8), le_u64(&trailer, 16), le_u64(&trailer, 24));
+        let index_len = chunks.checked_mul(INDEX_ENTRY_LEN as u64);
+        let expect_len = index_len.and_then(|l| index_offset.checked_add(l)).and_then(|e| e.checked_add(TRAILER_LEN as u64));
+        if expect_len != Some(len) || index_offset < data_start {
+            return Err(incomplete(format!(
+                "index of {chunks} chunks at byte {index_offset} does not fit a {len}-byte file (truncated or corrupted)"
+            )));
+        }
+        // Fits in the file, so this allocation is bounded by the file's size.
+        let mut ibuf = vec![0u8; (len - index_offset) as usize];
+        file.seek(SeekFrom::Start(index_offset)).map_err(io)?;
+        file.read_exact(&mut ibuf).map_err(io)?;
+        let body = ibuf.len() - 8;
+        if crc32fast::hash(&ibuf[..body]) != le_u32(&ibuf, body) {
+            return Err(incomplete("chunk index checksum mismatch (file corrupted)".into()));
+        }
+        let mut index = Vec::with_capacity(chunks as usize);
+        let (mut sum_r, mut sum_h) = (0u64, 0u64);
+        for c in 0..chunks as usize {
+            let e = ChunkEntry { offset: le_u64(&ibuf, 16 * c), rays: le_u32(&ibuf, 16 * c + 8), hits: le_u32(&ibuf, 16 * c + 12) };
+            let prev_end = index.last().map_or(data_start, |q: &ChunkEntry| q.offset + CHUNK_HEADER_LEN as u64);
+            if (c == 0 && e.offset != data_start) || e.offset < prev_end || e.offset + CHUNK_HEADER_LEN as u64 > index_offset {
+                return Err(incomplete(format!("chunk index entry {c} points at byte {} (out of order or outside the data)", e.offset)));
+            }
+            if e.rays == 0 || e.rays > MAX_CHUNK_RAYS || e.hits > e.rays {
+                return Err(incomplete(format!("chunk index entry {c} claims {} rays and {} hits", e.rays, e.hits)));
+            }
+            sum_r += e.rays as u64;
+            sum_h += e.hits as u64;
+            index.push(e);
+        }
+        if sum_r != rays || sum_h != hits {
+            return Err(incomplete(format!("chunk index sums to {sum_r} rays / {sum_h} hits, trailer says {rays} / {hits}")));
+        }
+        if chunks == 0 && index_offset != data_start {
+            return Err(incomplete("bytes between the header and an empty index".into()));
+        }
+        Ok(Self { path: p(), file, header, index, index_offset, next: 0, rays, hits })
+    }
+
+    pub fn header(&self) -> &DatasetHeader {
+        &self.header
+    }
+
+    /// Number of rays (hits and misses).
+    pub fn len(&self) -> usize {
+        self.rays as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.rays == 0
+    }
+
+    pub fn hit_count(&self) -> u64 {
+        self.hits
+    }
+
+    pub fn exit_count(&self) -> u64 {
+        self.hits * self.header.k as u64
+    }
+
+    pub fn chunk_count(&self) -> usize {
+        self.index.len()
+    }
+
+    /// Rays in chunk `i` (for shuffling at chunk granularity).
+    pub fn chunk_rays(&self, i: usize) -> Option<u32> {
+        self.index.get(i).map(|e| e.rays)
+    }
+
+    /// Starts streaming from the first chunk again (one epoch = one pass).
+    pub fn rewind(&mut self) {
+        self.next = 0;
+    }
+
+    /// The next chunk's records; `None` after the last one. After an error
+    /// the stream ends (a corrupted chunk is reported once, not forever).
+    pub fn next_chunk(&mut self) -> Option<Result<Vec<RayRecord>, DatasetError>> {
+        if self.next >= self.index.len() {
+            return None;
+        }
+        let i = self.next;
+        let r = self.read_chunk(i);
+        self.next = if r.is_ok() { i + 1 } else { self.index.len() };
+        Some(r)
+    }
+
+    /// Chunk `i`, read and checked on its own (random access).
+    pub fn read_chunk(&mut self, i: usize) -> Result<Vec<RayRecord>, DatasetError> {
+        let e = *self.index.get(i).ok_or_else(|| DatasetError::Index { path: self.path.clone(), what: format!("no chunk {i} (file has {})", self.index.len()) })?;
+        let err = |what: String| DatasetError::Chunk { path: self.path.clone(), chunk: i as u64, offset: e.offset, what };
+        let end = self.index.get(i + 1).map_or(self.index_offset, |n| n.offset);
+        let span = (end - e.offset) as usize;
+        self.file.seek(SeekFrom::Start(e.offset)).map_err(|s| err(s.to_string()))?;
+        let mut head = [0u8; CHUNK_HEADER_LEN];
+        self.file.read_exact(&mut head).map_err(|s| err(s.to_string()))?;
+        if head[..4] != CHUNK_MAGIC {
+            return Err(err("no chunk marker (file corrupted)".into()));
+        }
+        let (rays, hits, enc, stored_len, raw_len, crc) =
+            (le_u32(&head, 4), le_u32(&head, 8), le_u32(&head, 12), le_u32(&head, 16) as usize, le_u32(&head, 20) as usize, le_u32(&head, 24));
+        if stored_len != span - CHUNK_HEADER_LEN {
+            return Err(err(format!("chunk header says {stored_len} payload bytes, {} present before the next chunk", span - CHUNK_HEADER_LEN)));
+        }
+        if raw_len > MAX_CHUNK_RAW {
+            return Err(err(format!("chunk claims {raw_len} uncompressed bytes (limit {MAX_CHUNK_RAW})")));
+        }
+        // Bounded by the file's own size (checked against the index above).
+        let mut stored = vec![0u8; stored_len];
+        self.file.read_exact(&mut stored).map_err(|s| err(s.to_string()))?;
+        let mut h = crc32fast::Hasher::new();
+        h.update(&head[4..24]);
+        h.update(&stored);
+        if h.finalize() != crc {
+            return Err(err("checksum mismatch (file corrupted)".into()));
+        }
+        if rays != e.rays || hits != e.hits {
+            return Err(err(format!("chunk says {rays} rays / {hits} hits, index {} / {}", e.rays, e.hits)));
+        }
+        let raw = match enc {
+            ENC_RAW => stored,
+            ENC_DEFLATE => {
+                let raw = miniz_oxide::inflate::decompress_to_vec_with_limit(&stored, raw_len).map_err(|e| err(format!("cannot inflate: {e}")))?;
+                if raw.len() != raw_len {
+                    return Err(err(format!("inflates to {} bytes, header says {raw_len}", raw.len())));
+                }
+                raw
+            }
+            other => return Err(err(format!("unknown payload encoding {other}"))),
+        };
+        decode_payload(&raw, rays, hits, self.header.k, bounce_width(self.header.max_internal_bounces)).map_err(err)
+    }
+
+    /// Every record, from the first chunk (memory: the whole data set).
+    pub fn read_all(&mut self) -> Result<Vec<RayRecord>, DatasetError> {
+        self.rewind();
+        let mut out = Vec::with_capacity(self.rays.min(1 << 24) as usize);
+        while let Some(c) = self.next_chunk() {
+            out.extend(c?);
+        }
+        Ok(out)
+    }
+}
+
+fn read_up_to(r: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match r.read(&mut buf[n..])? {
+            0 => break,
+            k => n += k,
+        }
+    }
+    Ok(n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nppp_geom::SampleRng;
+
+    fn header(k: u32) -> DatasetHeader {
+        DatasetHeader {
+            mesh_name: "bunny.obj".into(),
+            mesh_hash: 42,
+            material_name: "white".into(),
+            material_hash: 7,
+            material_json: r#"{"type":"diffuse","albedo":[0.8,0.6,0.4]}"#.into(),
+            sphere: BoundingSphere { center: Vec3::new(0.1, 0.2, -0.3), radius: 1.2345678 },
+            k,
+            seed: 1234,
+            max_internal_bounces: 64,
+        }
+    }
+
+    fn unit(rng: &mut SampleRng) -> Vec3 {
+        nppp_geom::sampling::uniform_sphere(rng.uniform2())
+    }
+
+    /// Exits shaped like a diffuse object's: albedo^bounces throughput, some
+    /// absorbed, zero radiance except now and then.
+    pub(crate) fn synthetic_record(rng: &mut SampleRng, k: u32, hit_rate: f32) -> RayRecord {
+        let pair = SpherePair([rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()]);
+        if rng.uniform() >= hit_rate {
+            return RayRecord { pair, hit: false, exits: vec![] };
+        }
+        let exits = (0..k)
+            .map(|_| {
+                let position = unit(rng);
+                let mut direction = unit(rng);
+                if direction.dot(position) < 0.0 {
+                    direction = -direction;
+                }
+                let mut b = 1u32;
+                while rng.uniform() < 0.5 && b < 64 {
+                    b += 1;
+                }
+                let absorbed = rng.uniform() < 0.1;
+                let throughput = if absorbed { Vec3::ZERO } else { Vec3::new(0.8f32.powi(b as i32), 0.6f32.powi(b as i32), 0.4f32.powi(b as i32)) };
+                let radiance = if rng.uniform() < 0.02 { Vec3::splat(rng.uniform() * 5.0) } else { Vec3::ZERO };
+                Exit { position, direction, throughput, radiance, bounces: b }
+            })
+            .collect();
+        RayRecord { pair, hit: true, exits }
+    }
+
+    fn tmp(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("nppp-data-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d.join("d.nppd")
+    }
+
+    fn color_close(a: Vec3, b: Vec3) -> bool {
+        // Half precision: 2^-11 relative, 2^-25 absolute below the normals.
+        (a - b).abs().cmple(a.abs() * (1.0 / 2048.0) + Vec3::splat(3.0e-8)).all()
+    }
+
+    /// Angle between directions, accurate near 0 (unlike acos of a dot).
+    fn angle(a: Vec3, b: Vec3) -> f32 {
+        2.0 * (0.5 * (a.normalize() - b.normalize()).length()).asin()
+    }
+
+    fn assert_close(a: &RayRecord, b: &RayRecord) {
+        assert_eq!(a.pair, b.pair);
+        assert_eq!(a.hit, b.hit);
+        assert_eq!(a.exits.len(), b.exits.len());
+        for (x, y) in a.exits.iter().zip(&b.exits) {
+            assert!(angle(x.position, y.position) <= OCT_MAX_ANGLE, "{x:?} {y:?}");
+            assert!(angle(x.direction, y.direction) <= OCT_MAX_ANGLE);
+            assert!(color_close(x.throughput, y.throughput), "{x:?} {y:?}");
+            assert!(color_close(x.radiance, y.radiance));
+            assert_eq!(x.bounces.min(64), y.bounces);
+        }
+    }
+
+    #[test]
+    fn f16_round_trips() {
+        for h in 0u16..0x7c00 {
+            assert_eq!(f32_to_f16(f16_to_f32(h)), h, "{h:#x}");
+        }
+        assert_eq!(f32_to_f16(1e9), 0x7bff);
+        assert_eq!(f32_to_f16(-1.0), 0);
+        assert_eq!(f32_to_f16(f32::NAN), 0);
+        assert_eq!(f32_to_f16(1.0), 0x3c00);
+        // Ties to even, and rounding that carries into the exponent.
+        assert_eq!(f32_to_f16(1.0 + 1.0 / 2048.0), 0x3c00);
+        assert_eq!(f32_to_f16(1.0 + 3.0 / 2048.0), 0x3c02);
+        assert_eq!(f32_to_f16(2.0 - 1.0 / 4096.0), 0x4000);
+        let mut rng = SampleRng::from_seed(3);
+        for _ in 0..100_000 {
+            let x = (rng.uniform() * 30.0 - 20.0).exp2();
+            assert!(color_close(Vec3::splat(x), Vec3::splat(f16_to_f32(f32_to_f16(x)))), "{x}");
+        }
+    }
+
+    #[test]
+    fn octahedral_error_is_bounded() {
+        let mut rng = SampleRng::from_seed(9);
+        let mut worst = 0.0f32;
+        let mut sum = 0.0f64;
+        let mut axes = vec![Vec3::X, Vec3::Y, Vec3::Z, -Vec3::X, -Vec3::Y, -Vec3::Z, Vec3::ONE.normalize(), -Vec3::ONE.normalize()];
+        axes.extend((0..200_000).map(|_| unit(&mut rng)));
+        for v in axes {
+            let back = oct_decode(oct_encode(v));
+            let a = angle(back, v);
+            worst = worst.max(a);
+            sum += a as f64;
+        }
+        eprintln!("octahedral 2x16 bit: worst angle {worst:e} rad, mean {:e} rad", sum / 200_008.0);
+        assert!(worst <= OCT_MAX_ANGLE, "{worst}");
+    }
+
+    #[test]
+    fn round_trip_within_tolerance_and_chunked() {
+        let path = tmp("rt");
+        let mut rng = SampleRng::from_seed(1);
+        let k = 16;
+        let mut recs: Vec<RayRecord> = (0..300).map(|_| synthetic_record(&mut rng, k, 0.4)).collect();
+        // Edge cases: huge and tiny colours, bounces over the cap, an unnormalized position.
+        recs[0] = synthetic_record(&mut rng, k, 1.0);
+        recs[0].exits[0].throughput = Vec3::new(1e-7, 7e4, 0.0);
+        recs[0].exits[1].bounces = 1000;
+        recs[0].exits[2].position *= 3.0;
+        let opts = WriterOptions { chunk_rays: 64, compress: true };
+        let mut w = DatasetWriter::create_with(&path, header(k), opts).unwrap();
+        for r in &recs {
+            w.write(r).unwrap();
+        }
+        // Nothing at the final path before finish.
+        assert!(!path.exists());
+        let summary = w.finish().unwrap();
+        assert_eq!(summary.rays, 300);
+        assert_eq!(summary.chunks, 5);
+        assert_eq!(summary.file_bytes, std::fs::metadata(&path).unwrap().len());
+
+        let mut r = DatasetReader::open(&path).unwrap();
+        assert_eq!(r.header(), &header(k));
+        assert_eq!(r.len(), 300);
+        assert_eq!(r.chunk_count(), 5);
+        assert_eq!(r.hit_count(), summary.hits);
+        let mut seen = 0;
+        while let Some(chunk) = r.next_chunk() {
+            let chunk = chunk.unwrap();
+            assert!(chunk.len() <= 64);
+            for rec in &chunk {
+                let want = &recs[seen];
+                if seen == 0 {
+                    let t = rec.exits[0].throughput;
+                    assert!(t.x > 0.0 && (t.x - 1e-7).abs() < 3e-8 && t.y == 65504.0 && t.z == 0.0, "{t}");
+                    assert_eq!(rec.exits[1].bounces, 64);
+                } else {
+                    assert_close(want, rec);
+                }
+                seen += 1;
+            }
+        }
+        assert_eq!(seen, 300);
+        let all = r.read_all().unwrap();
+        assert_eq!(all.len(), 300);
+        assert_eq!(all[299], r.read_chunk(4).unwrap()[299 - 256]);
+        // Raw and compressed files decode to the same records.
+        let path2 = tmp("rt-raw");
+        let mut w = DatasetWriter::create_with(&path2, header(k), WriterOptions { chunk_rays: 100, compress: false }).unwrap();
+        recs.iter().for_each(|rec| w.write(rec).unwrap());
+        let s2 = w.finish().unwrap();
+        assert!(s2.file_bytes > summary.file_bytes);
+        assert_eq!(DatasetReader::open(&path2).unwrap().read_all().unwrap(), all);
+        let _ = std::fs::remove_dir_all(path.parent().unwrap());
+        let _ = std::fs::remove_dir_all(path2.parent().unwrap());
+    }
+
+    #[test]
+    fn empty_and_invalid_records() {
+        let path = tmp("empty");
+        let w = DatasetWriter::create(&path, header(4)).unwrap();
+        assert!(w.is_empty());
+        w.finish().unwrap();
+        let mut r = DatasetReader::open(&path).unwrap();
+        assert!(r.is_empty() && r.next_chunk().is_none());
+
+        let mut w = DatasetWriter::create(&path, header(4)).unwrap();
+        let mut rng = SampleRng::from_seed(2);
+        let mut rec = synthetic_record(&mut rng, 4, 1.0);
+        rec.exits.pop();
+        assert!(w.write(&rec).unwrap_err().to_string().contains("ray 0: 3 exits for a hit (k = 4)"));
+        let mut rec = synthetic_record(&mut rng, 4, 1.0);
+        rec.exits[2].throughput.y = f32::NAN;
+        assert!(w.write(&rec).unwrap_err().to_string().contains("exit 2: throughput"));
+        rec.exits[2].throughput.y = -0.5;
+        assert!(w.write(&rec).is_err());
+        let rec = RayRecord { pair: SpherePair([0.1; 4]), hit: false, exits: vec![Exit::default()] };
+        assert!(w.write(&rec).is_err());
+        // Dropping an unfinished writer leaves the old file alone and no temp file.
+        drop(w);
+        assert!(DatasetReader::open(&path).unwrap().is_empty());
+        assert_eq!(std::fs::read_dir(path.parent().unwrap()).unwrap().count(), 1);
+        let mut h = header(0);
+        assert!(DatasetWriter::create(&path, h.clone()).is_err());
+        h.k = 2;
+        h.sphere.radius = 0.0;
+        assert!(DatasetWriter::create(&path, h).is_err());
+        let _ = std::fs::remove_dir_all(path.parent().unwrap());
+    }
+
+    fn small_file(compress: bool) -> (PathBuf, Vec<u8>) {
+        let path = tmp(if compress { "corrupt-z" } else { "corrupt" });
+        let mut rng = SampleRng::from_seed(5);
+        let mut w = DatasetWriter::create_with(&path, header(4), WriterOptions { chunk_rays: 8, compress }).unwrap();
+        for _ in 0..30 {
+            w.write(&synthetic_record(&mut rng, 4, 0.5)).unwrap();
+        }
+        w.finish().unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        (path, bytes)
+    }
+
+    /// Opens and reads everything; the first error as text.
+    fn first_error(path: &Path) -> Option<String> {
+        match DatasetReader::open(path) {
+            Err(e) => Some(e.to_string()),
+            Ok(mut r) => r.read_all().err().map(|e| e.to_string()),
+        }
+    }
+
+    /// The same from memory (rewriting a file thousands of times is slow).
+    fn first_error_mem(bytes: &[u8], path: &Path) -> Option<String> {
+        match DatasetReader::from_bytes(bytes.to_vec(), path) {
+            Err(e) => Some(e.to_string()),
+            Ok(mut r) => r.read_all().err().map(|e| e.to_string()),
+        }
+    }
+
+    #[test]
+    fn corruption_is_detected_everywhere() {
+        for compress in [false, true] {
+            let (path, good) = small_file(compress);
+            assert_eq!(first_error(&path), None);
+            let name = path.display().to_string();
+            for i in 0..good.len() {
+                let mut b = good.clone();
+                b[i] ^= 0x04;
+                let e = first_error_mem(&b, &path).unwrap_or_else(|| panic!("flipped byte {i} not detected"));
+                assert!(e.starts_with(&name), "{e}");
+            }
+            for n in (0..good.len()).chain([good.len() - 1, good.len() - 40, 15, 16]) {
+                assert!(first_error_mem(&good[..n], &path).is_some(), "truncated at {n} accepted");
+            }
+            // A damaged chunk is named, and reported once.
+            let mut b = good.clone();
+            let hlen = le_u32(&good, 12) as usize;
+            let second_chunk_payload = {
+                let first = 16 + hlen + 4;
+                let stored = le_u32(&good, first + 16) as usize;
+                first + CHUNK_HEADER_LEN + stored + CHUNK_HEADER_LEN + 3
+            };
+            b[second_chunk_payload] ^= 0xff;
+            std::fs::write(&path, &b).unwrap();
+            let mut r = DatasetReader::open(&path).unwrap();
+            assert!(r.next_chunk().unwrap().is_ok());
+            let e = r.next_chunk().unwrap().unwrap_err().to_string();
+            assert!(e.contains("chunk 1 (at byte") && e.contains("checksum mismatch"), "{e}");
+            assert!(r.next_chunk().is_none());
+            // Random access still reaches the good chunks.
+            assert!(r.read_chunk(2).is_ok());
+
+            let mut b = good.clone();
+            b[8] = 9;
+            std::fs::write(&path, &b).unwrap();
+            assert!(first_error(&path).unwrap().contains("version 9 not supported (this build reads 1)"));
+            let mut b = good.clone();
+            b[0] = b'X';
+            std::fs::write(&path, &b).unwrap();
+            assert!(first_error(&path).unwrap().contains("wrong magic"));
+            std::fs::write(&path, &good[..good.len() - 10]).unwrap();
+            assert!(first_error(&path).unwrap().contains("no chunk index"));
+            let _ = std::fs::remove_dir_all(path.parent().unwrap());
+        }
+    }
+
+    #[test]
+    fn absurd_index_values_do_not_allocate() {
+        let (path, good) = small_file(true);
+        let n = good.len();
+        // Trailer with a huge chunk count, checksum recomputed over what it covers.
+        let edit = |at: usize, v: u64| {
+            let mut b = good.clone();
+            b[n - TRAILER_LEN + at..n - TRAILER_LEN + at + 8].copy_from_slice(&v.to_le_bytes());
+            std::fs::write(&path, &b).unwrap();
+            first_error(&path).unwrap()
+        };
+        assert!(edit(8, u64::MAX / 2).contains("does not fit"));
+        assert!(edit(0, u64::MAX).contains("does not fit"));
+        assert!(edit(16, 1 << 40).contains("checksum"));
+        // A chunk that claims a huge uncompressed size, with a valid chunk CRC.
+        let hlen = le_u32(&good, 12) as usize;
+        let first = 16 + hlen + 4;
+        let mut b = good.clone();
+        b[first + 20..first + 24].copy_from_slice(&u32::MAX.to_le_bytes());
+        let mut h = crc32fast::Hasher::new();
+        h.update(&b[first + 4..first + 24]);
+        let stored = le_u32(&b, first + 16) as usize;
+        h.update(&b[first + CHUNK_HEADER_LEN..first + CHUNK_HEADER_LEN + stored]);
+        b[first + 24..first + 28].copy_from_slice(&h.finalize().to_le_bytes());
+        std::fs::write(&path, &b).unwrap();
+        assert!(first_error(&path).unwrap().contains("uncompressed bytes (limit"));
+        let _ = std::fs::remove_dir_all(path.parent().unwrap());
+    }
+}

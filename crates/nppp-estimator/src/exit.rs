@@ -1,0 +1,225 @@
+//! One sample of where light goes after entering an object's bounding sphere,
+//! and the invertible map between it and the network's feature vector.
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+/// Number of features of an encoded exit: position 3, direction 3,
+/// throughput 3, radiance 3, internal bounce count 1.
+pub const EXIT_FEATURES: usize = 13;
+
+/// Where a path left the bounding sphere, all in the unit sphere's frame.
+///
+/// An absorbed path (or one over the internal bounce cap) is an exit with zero
+/// throughput: it must stay in the distribution or the estimator over-brightens.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct Exit {
+    /// On the unit sphere.
+    pub position: Vec3,
+    /// Unit, pointing out of the sphere.
+    pub direction: Vec3,
+    /// Path throughput accumulated inside (rgb, >= 0).
+    pub throughput: Vec3,
+    /// Radiance gathered inside, already weighted by the inside throughput
+    /// (non-zero only for emissive objects).
+    pub radiance: Vec3,
+    /// Scattering events made inside; counted against the path's M.
+    pub bounces: u32,
+}
+
+/// Per-feature standardization of the encoded exit. Throughput, radiance and
+/// bounces are compressed with ln(1 + x) before standardization so that rare
+/// bright values do not dominate the Chamfer distance; `decode` inverts this
+/// exactly and clamps to the physically valid range.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ExitTransform {
+    pub mean: [f32; EXIT_FEATURES],
+    pub std: [f32; EXIT_FEATURES],
+}
+
+impl Default for ExitTransform {
+    fn default() -> Self {
+        Self { mean: [0.0; EXIT_FEATURES], std: [1.0; EXIT_FEATURES] }
+    }
+}
+
+/// Counts of decoder outputs that had to be repaired; the renderer reports them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DecodeRepairs {
+    /// Position or direction had near-zero length or a non-finite value.
+    pub degenerate: u32,
+    /// Direction pointed into the sphere and was reflected to point out.
+    pub inward: u32,
+    /// Throughput or radiance out of range (negative, non-finite) and clamped.
+    pub clamped: u32,
+}
+
+impl ExitTransform {
+    /// Raw (unstandardized) features of an exit.
+    pub fn raw_features(e: &Exit) -> [f32; EXIT_FEATURES] {
+        let l = |x: f32| x.max(0.0).ln_1p();
+        [
+            e.position.x,
+            e.position.y,
+            e.position.z,
+            e.direction.x,
+            e.direction.y,
+            e.direction.z,
+            l(e.throughput.x),
+            l(e.throughput.y),
+            l(e.throughput.z),
+            l(e.radiance.x),
+            l(e.radiance.y),
+            l(e.radiance.z),
+            l(e.bounces as f32),
+        ]
+    }
+
+    /// Fits mean and std over a set of exits (std floored so that constant
+    /// features such as zero radiance stay finite).
+    pub fn fit<'a>(exits: impl IntoIterator<Item = &'a Exit>) -> Self {
+        let mut n = 0.0f64;
+        let mut s = [0.0f64; EXIT_FEATURES];
+        let mut s2 = [0.0f64; EXIT_FEATURES];
+        for e in exits {
+            let f = Self::raw_features(e);
+            n += 1.0;
+            for i in 0..EXIT_FEATURES {
+                s[i] += f[i] as f64;
+                s2[i] += (f[i] as f64) * (f[i] as f64);
+            }
+        }
+        let mut t = Self::default();
+        if n == 0.0 {
+            return t;
+        }
+        for i in 0..EXIT_FEATURES {
+            let m = s[i] / n;
+            let var = (s2[i] / n - m * m).max(0.0);
+            t.mean[i] = m as f32;
+            t.std[i] = (var.sqrt() as f32).max(1e-3);
+        }
+        t
+    }
+
+    pub fn encode(&self, e: &Exit) -> [f32; EXIT_FEATURES] {
+        let mut f = Self::raw_features(e);
+        for i in 0..EXIT_FEATURES {
+            f[i] = (f[i] - self.mean[i]) / self.std[i];
+        }
+        f
+    }
+
+    /// Inverts `encode`; repairs what a network may get wrong (unnormalized
+    /// vectors, inward directions, negative or non-finite values) and counts it.
+    pub fn decode(&self, f: &[f32; EXIT_FEATURES], max_bounces: u32, repairs: &mut DecodeRepairs) -> Exit {
+        let mut raw = [0.0f32; EXIT_FEATURES];
+        for i in 0..EXIT_FEATURES {
+            raw[i] = f[i] * self.std[i] + self.mean[i];
+        }
+        let position = match safe_normalize(Vec3::new(raw[0], raw[1], raw[2])) {
+            Some(p) => p,
+            None => {
+                repairs.degenerate += 1;
+                Vec3::Z
+            }
+        };
+        let mut direction = match safe_normalize(Vec3::new(raw[3], raw[4], raw[5])) {
+            Some(d) => d,
+            None => {
+                repairs.degenerate += 1;
+                position
+            }
+        };
+        // An exit must leave the sphere: reflect an inward direction about the
+        // tangent plane rather than dropping the sample (that would bias energy).
+        let c = direction.dot(position);
+        if c < 0.0 {
+            repairs.inward += 1;
+            direction = (direction - 2.0 * c * position).normalize();
+        }
+        let mut clamped = false;
+        let mut unlog = |y: f32| -> f32 {
+            if !y.is_finite() {
+                clamped = true;
+                return 0.0;
+            }
+            // exp(88) overflows f32; anything that large is a broken network.
+            let v = y.min(80.0).exp() - 1.0;
+            if v < 0.0 {
+                if v < -1e-6 {
+                    clamped = true;
+                }
+                0.0
+            } else {
+                v
+            }
+        };
+        let throughput = Vec3::new(unlog(raw[6]), unlog(raw[7]), unlog(raw[8]));
+        let radiance = Vec3::new(unlog(raw[9]), unlog(raw[10]), unlog(raw[11]));
+        let b = unlog(raw[12]).round();
+        if clamped {
+            repairs.clamped += 1;
+        }
+        let bounces = (b.clamp(0.0, max_bounces as f32)) as u32;
+        Exit { position, direction, throughput, radiance, bounces }
+    }
+}
+
+/// Normalizes without overflow: a finite vector with components near f32::MAX
+/// has an infinite squared length, and plain `normalize` would turn it into
+/// zero. Scaling by the largest component first keeps it a unit vector.
+fn safe_normalize(v: Vec3) -> Option<Vec3> {
+    if !v.is_finite() {
+        return None;
+    }
+    let m = v.abs().max_element();
+    if !(m > 0.0) {
+        return None;
+    }
+    let s = v / m;
+    if !(m * s.length() > 1e-6) {
+        return None;
+    }
+    Some(s.normalize())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn encode_decode_round_trips(
+            th in 0.0f32..1.0, ph in 0.0f32..6.28, t in 0.0f32..2.0, r in 0.0f32..100.0, b in 0u32..50
+        ) {
+            let p = Vec3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos());
+            let d = (p + Vec3::new(0.1, 0.2, 0.3)).normalize();
+            prop_assume!(d.dot(p) > 0.0);
+            let e = Exit { position: p, direction: d, throughput: Vec3::splat(t), radiance: Vec3::new(r, 0.0, r * 0.5), bounces: b };
+            let tr = ExitTransform { mean: [0.1; EXIT_FEATURES], std: [0.7; EXIT_FEATURES] };
+            let mut rep = DecodeRepairs::default();
+            let back = tr.decode(&tr.encode(&e), 1000, &mut rep);
+            prop_assert_eq!(rep, DecodeRepairs::default());
+            prop_assert!(back.position.distance(p) < 1e-4);
+            prop_assert!(back.direction.distance(d) < 1e-4);
+            prop_assert!((back.throughput - e.throughput).abs().max_element() < 1e-4 * (1.0 + t));
+            prop_assert!((back.radiance - e.radiance).abs().max_element() < 1e-4 * (1.0 + r));
+            prop_assert_eq!(back.bounces, b);
+        }
+
+        #[test]
+        fn decode_never_returns_invalid(f in proptest::array::uniform13(prop_oneof![-1e30f32..1e30, Just(f32::NAN), Just(f32::INFINITY), Just(0.0f32)])) {
+            let tr = ExitTransform::default();
+            let mut rep = DecodeRepairs::default();
+            let e = tr.decode(&f, 64, &mut rep);
+            prop_assert!((e.position.length() - 1.0).abs() < 1e-4);
+            prop_assert!((e.direction.length() - 1.0).abs() < 1e-4);
+            prop_assert!(e.direction.dot(e.position) >= -1e-4);
+            prop_assert!(e.throughput.is_finite() && e.throughput.min_element() >= 0.0);
+            prop_assert!(e.radiance.is_finite() && e.radiance.min_element() >= 0.0);
+            prop_assert!(e.bounces <= 64);
+        }
+    }
+}

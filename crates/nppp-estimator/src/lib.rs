@@ -1,0 +1,20 @@
+//! The estimator's data and runtime, free of any training stack: the exit
+//! sample and its learning transform, the training-data file, the baked
+//! `.nppp` file (quantized 4D latent and mask grids plus decoder weights) and
+//! the CPU sampler the renderer calls.
+
+pub mod baked;
+pub mod dataset;
+pub mod exit;
+pub mod grid;
+pub mod mlp;
+pub mod quant;
+pub mod sampler;
+
+pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
+pub use dataset::{DatasetError, DatasetHeader, DatasetReader, DatasetSummary, DatasetWriter, RayRecord, WriterOptions};
+pub use exit::{DecodeRepairs, EXIT_FEATURES, Exit, ExitTransform};
+pub use grid::{QuantizedGrid, node_coords, node_count};
+pub use mlp::{Dense, Mlp};
+pub use quant::{QuantError, dequantize, quantize};
+pub use sampler::{EstimatorSampler, SamplerScratch};

@@ -1,0 +1,250 @@
+//! The estimator at render time: mask lookup, latent lookup, decoder, and the
+//! inverse output transform, for rays already in the unit sphere's frame.
+//!
+//! Everything is read-only after construction, so one sampler is shared by
+//! all render threads; per-thread state lives in [`SamplerScratch`] so that
+//! no call allocates.
+
+use crate::baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
+use crate::exit::{DecodeRepairs, EXIT_FEATURES, Exit};
+use nppp_geom::{Ray, SpherePair};
+
+pub struct EstimatorSampler {
+    baked: BakedEstimator,
+    latent_dim: usize,
+    noise_dim: usize,
+    mlp_scratch: usize,
+}
+
+/// Per-thread buffers for [`EstimatorSampler::sample`].
+#[derive(Clone, Debug)]
+pub struct SamplerScratch {
+    /// Decoder input `[z, r]`.
+    input: Vec<f32>,
+    output: [f32; EXIT_FEATURES],
+    mlp: Vec<f32>,
+}
+
+impl SamplerScratch {
+    pub fn new(sampler: &EstimatorSampler) -> Self {
+        Self { input: vec![0.0; sampler.latent_dim + sampler.noise_dim], output: [0.0; EXIT_FEATURES], mlp: vec![0.0; sampler.mlp_scratch] }
+    }
+}
+
+impl EstimatorSampler {
+    /// Panics if `baked` fails [`BakedEstimator::check`], which cannot happen
+    /// for one from `load` or `from_f32_grids`; use [`Self::try_new`] for
+    /// estimators assembled by hand.
+    pub fn new(baked: BakedEstimator) -> Self {
+        match Self::try_new(baked) {
+            Ok(s) => s,
+            Err(e) => panic!("{e}"),
+        }
+    }
+
+    pub fn try_new(baked: BakedEstimator) -> Result<Self, EstimatorFileError> {
+        baked.check().map_err(EstimatorFileError::Build)?;
+        let latent_dim = baked.meta.latent_dim as usize;
+        let noise_dim = baked.meta.noise_dim as usize;
+        let mlp_scratch = 2 * baked.decoder.max_width();
+        Ok(Self { baked, latent_dim, noise_dim, mlp_scratch })
+    }
+
+    pub fn baked(&self) -> &BakedEstimator {
+        &self.baked
+    }
+
+    pub fn meta(&self) -> &EstimatorMeta {
+        &self.baked.meta
+    }
+
+    pub fn latent_dim(&self) -> usize {
+        self.latent_dim
+    }
+
+    /// How many standard normals `sample` consumes per ray.
+    pub fn noise_dim(&self) -> usize {
+        self.noise_dim
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        self.baked.memory_bytes()
+    }
+
+    /// The interpolated mask logit: a soft, signed value whose sign decides
+    /// the hit (thresholding after interpolation avoids staircase edges).
+    #[inline]
+    pub fn mask_logit(&self, pair: &SpherePair) -> f32 {
+        let mut out = [0.0f32];
+        self.baked.mask.interpolate(pair, &mut out);
+        out[0]
+    }
+
+    /// Whether a ray with this chord would hit the mesh.
+    #[inline]
+    pub fn hits(&self, pair: &SpherePair) -> bool {
+        self.mask_logit(pair) > 0.0
+    }
+
+    /// The interpolated latent into `out[..latent_dim]`.
+    #[inline]
+    pub fn latent(&self, pair: &SpherePair, out: &mut [f32]) {
+        self.baked.latent.interpolate(pair, out);
+    }
+
+    /// One exit for the chord `pair`, driven by `r` (`noise_dim` standard
+    /// normals; panics if shorter). The exit is in the unit sphere's frame.
+    pub fn sample(&self, pair: &SpherePair, r: &[f32], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) -> Exit {
+        let (z, noise) = scratch.input.split_at_mut(self.latent_dim);
+        self.baked.latent.interpolate(pair, z);
+        noise.copy_from_slice(&r[..self.noise_dim]);
+        self.baked.decoder.forward_into(&scratch.input, &mut scratch.output, &mut scratch.mlp);
+        self.baked.transform.decode(&scratch.output, self.baked.meta.max_internal_bounces, repairs)
+    }
+
+    /// [`Self::sample`] for a ray given in the unit sphere's frame; `None`
+    /// when its line misses the sphere. The mask is not consulted.
+    pub fn sample_ray(&self, ray: &Ray, r: &[f32], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) -> Option<Exit> {
+        let (pair, _) = SpherePair::from_ray(ray)?;
+        Some(self.sample(&pair, r, scratch, repairs))
+    }
+
+    /// One exit per pair; `r` holds `noise_dim` normals per pair, row after
+    /// row. This is the wavefront entry point: one call per gathered batch.
+    pub fn sample_batch(&self, pairs: &[SpherePair], r: &[f32], out: &mut [Exit], repairs: &mut DecodeRepairs) {
+        let mut scratch = SamplerScratch::new(self);
+        self.sample_batch_with(pairs, r, out, &mut scratch, repairs);
+    }
+
+    /// [`Self::sample_batch`] without even the per-batch scratch allocation.
+    pub fn sample_batch_with(&self, pairs: &[SpherePair], r: &[f32], out: &mut [Exit], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) {
+        assert!(out.len() >= pairs.len(), "sample_batch: {} outputs for {} pairs", out.len(), pairs.len());
+        assert!(r.len() >= pairs.len() * self.noise_dim, "sample_batch: {} normals for {} pairs x {}", r.len(), pairs.len(), self.noise_dim);
+        let nd = self.noise_dim;
+        for (i, (pair, o)) in pairs.iter().zip(out.iter_mut()).enumerate() {
+            *o = self.sample(pair, &r[i * nd..(i + 1) * nd], scratch, repairs);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::baked::tests::tiny_estimator;
+    use nppp_geom::Vec3;
+
+    fn assert_valid(e: &Exit, max_b: u32) {
+        assert!((e.position.length() - 1.0).abs() < 1e-4, "{e:?}");
+        assert!((e.direction.length() - 1.0).abs() < 1e-4, "{e:?}");
+        assert!(e.direction.dot(e.position) >= -1e-4, "{e:?}");
+        assert!(e.throughput.is_finite() && e.throughput.min_element() >= 0.0);
+        assert!(e.radiance.is_finite() && e.radiance.min_element() >= 0.0);
+        assert!(e.bounces <= max_b);
+    }
+
+    #[test]
+    fn is_send_and_sync() {
+        fn check<T: Send + Sync>() {}
+        check::<EstimatorSampler>();
+        check::<SamplerScratch>();
+    }
+
+    #[test]
+    fn sample_matches_manual_pipeline() {
+        let est = tiny_estimator(4, 3, 8);
+        let s = EstimatorSampler::new(est.clone());
+        let mut scratch = SamplerScratch::new(&s);
+        let mut rep = DecodeRepairs::default();
+        let pair = SpherePair([0.3, 0.9, 0.6, 0.2]);
+        let r = [0.5f32, -1.0, 2.0];
+        let e = s.sample(&pair, &r, &mut scratch, &mut rep);
+        let mut z = [0.0f32; 4];
+        est.latent.interpolate(&pair, &mut z);
+        let input: Vec<f32> = z.iter().chain(&r).copied().collect();
+        let mut f = [0.0f32; EXIT_FEATURES];
+        est.decoder.forward_batch(&input, &mut f);
+        let mut rep2 = DecodeRepairs::default();
+        assert_eq!(e, est.transform.decode(&f, 64, &mut rep2));
+        assert_eq!(rep, rep2);
+        // Batch = loop.
+        let pairs = [pair, SpherePair([0.0, 0.0, 1.0, 0.5]), pair];
+        let rs = [r, [0.0; 3], [1.0, 1.0, 1.0]].concat();
+        let mut out = [Exit::default(); 3];
+        let mut rep3 = DecodeRepairs::default();
+        s.sample_batch(&pairs, &rs, &mut out, &mut rep3);
+        assert_eq!(out[0], e);
+        assert_eq!(out[1], s.sample(&pairs[1], &rs[3..6], &mut scratch, &mut rep));
+        assert_eq!(out[2], s.sample(&pairs[2], &rs[6..9], &mut scratch, &mut rep));
+        // The mask: hits is the sign of the interpolated logit.
+        for p in [pair, pairs[1]] {
+            assert_eq!(s.hits(&p), s.mask_logit(&p) > 0.0);
+        }
+    }
+
+    #[test]
+    fn stress_rays_give_valid_exits() {
+        let s = EstimatorSampler::new(tiny_estimator(4, 2, 4));
+        let mut scratch = SamplerScratch::new(&s);
+        let mut rep = DecodeRepairs::default();
+        let mut rays = vec![
+            // Exactly tangent (chord of length 0).
+            Ray::new(Vec3::new(0.0, 1.0, -5.0), Vec3::Z),
+            Ray::new(Vec3::new(1.0, 0.0, -3.0), Vec3::Z),
+            // Through both poles.
+            Ray::new(Vec3::new(0.0, 0.0, -4.0), Vec3::Z),
+            Ray::new(Vec3::new(0.0, 0.0, 4.0), -Vec3::Z),
+            // Along the phi = 0 seam, and across it.
+            Ray::new(Vec3::new(-3.0, 0.0, 0.0), Vec3::X),
+            Ray::new(Vec3::new(0.5, -3.0, 0.1), Vec3::Y),
+            Ray::new(Vec3::new(0.5, -1e-7, -3.0), Vec3::Z),
+            Ray::new(Vec3::new(0.5, 1e-7, -3.0), Vec3::Z),
+        ];
+        for k in 0..64 {
+            let a = k as f32 * 0.1;
+            rays.push(Ray::new(Vec3::new(a.cos() * 3.0, a.sin() * 3.0, 0.3), -Vec3::new(a.cos(), a.sin(), 0.0)));
+        }
+        for ray in &rays {
+            let e = s.sample_ray(ray, &[0.3, -0.2], &mut scratch, &mut rep).expect("ray hits sphere");
+            assert_valid(&e, 64);
+            let (pair, _) = SpherePair::from_ray(ray).unwrap();
+            assert!(s.mask_logit(&pair).is_finite());
+        }
+        assert!(s.sample_ray(&Ray::new(Vec3::new(0.0, 2.0, -5.0), Vec3::Z), &[0.0, 0.0], &mut scratch, &mut rep).is_none());
+        // Continuity across the v seam.
+        let mut a = [0.0f32; 4];
+        let mut b = [0.0f32; 4];
+        s.latent(&SpherePair([0.4, 1.0 - 1e-6, 0.6, 0.3]), &mut a);
+        s.latent(&SpherePair([0.4, 1e-6, 0.6, 0.3]), &mut b);
+        assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-3));
+        // Hostile pairs and noise.
+        for p in [[f32::NAN; 4], [f32::INFINITY, -1.0, 2.0, f32::NEG_INFINITY], [1e30, -1e30, 0.5, 0.5]] {
+            let e = s.sample(&SpherePair(p), &[f32::NAN, 1e30], &mut scratch, &mut rep);
+            assert_valid(&e, 64);
+        }
+    }
+
+    #[test]
+    fn broken_decoder_outputs_are_repaired_and_counted() {
+        let mut est = tiny_estimator(4, 2, 8);
+        est.transform = crate::exit::ExitTransform::default();
+        // A last layer that outputs huge values, negative throughput and a
+        // zero position: every repair path.
+        let last = est.decoder.layers.last_mut().unwrap();
+        last.weight.iter_mut().for_each(|w| *w = 0.0);
+        last.bias = vec![0.0, 0.0, 0.0, 1e30, -1e30, 0.0, -50.0, 1e30, -1.0, 0.0, 0.0, 0.0, 1e3];
+        let s = EstimatorSampler::new(est);
+        let mut scratch = SamplerScratch::new(&s);
+        let mut rep = DecodeRepairs::default();
+        let e = s.sample(&SpherePair([0.5; 4]), &[0.0, 0.0], &mut scratch, &mut rep);
+        assert_valid(&e, 64);
+        assert_eq!(e.bounces, 64);
+        assert!(rep.degenerate >= 1 && rep.clamped >= 1, "{rep:?}");
+    }
+
+    #[test]
+    fn try_new_rejects_inconsistent_estimators() {
+        let mut est = tiny_estimator(4, 2, 8);
+        est.meta.noise_dim = 5;
+        assert!(EstimatorSampler::try_new(est).is_err());
+    }
+}

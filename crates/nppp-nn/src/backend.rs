@@ -1,0 +1,71 @@
+//! Choosing the Burn backend at run time.
+//!
+//! Burn 0.22 carries the backend in the `Device`, so a backend is a value,
+//! not a type: the training code is the same for all of them. The device is
+//! always chosen explicitly, because `Device::default()` prefers GPU backends
+//! in a fixed order even on a machine without a GPU.
+
+use anyhow::Result;
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+/// A Burn backend the trainer and baker can run on.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendKind {
+    /// Burn's NdArray CPU backend (deprecated upstream, kept for the tests).
+    Ndarray,
+    /// Burn's Flex CPU backend (pure Rust); measured faster than NdArray for
+    /// this model on 2 cores (see the crate README), hence the default.
+    Flex,
+    /// Burn's wgpu backend (a GPU through Vulkan/Metal/DX12); needs this
+    /// crate built with the `wgpu` cargo feature.
+    Wgpu,
+}
+
+impl Default for BackendKind {
+    fn default() -> Self {
+        Self::Flex
+    }
+}
+
+impl std::fmt::Display for BackendKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Ndarray => "ndarray",
+            Self::Flex => "flex",
+            Self::Wgpu => "wgpu",
+        })
+    }
+}
+
+impl BackendKind {
+    /// The inference device (no autodiff) of this backend.
+    pub fn device(self) -> Result<Device> {
+        match self {
+            #[allow(deprecated)]
+            Self::Ndarray => Ok(Device::ndarray()),
+            Self::Flex => Ok(Device::flex()),
+            Self::Wgpu => wgpu_device(),
+        }
+    }
+
+    /// Whether results are reproducible bit for bit on this backend (CPU
+    /// backends are; GPU reductions and seeding are not, STACK.md).
+    pub fn is_deterministic(self) -> bool {
+        !matches!(self, Self::Wgpu)
+    }
+}
+
+#[cfg(feature = "wgpu")]
+fn wgpu_device() -> Result<Device> {
+    Ok(Device::wgpu(burn::tensor::DeviceKind::DefaultDevice))
+}
+
+#[cfg(not(feature = "wgpu"))]
+fn wgpu_device() -> Result<Device> {
+    anyhow::bail!(
+        "this nppp was built without the `wgpu` cargo feature; rebuild with \
+         `--features nppp-nn/wgpu` or choose --backend flex|ndarray"
+    )
+}

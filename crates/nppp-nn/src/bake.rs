@@ -1,0 +1,467 @@
+//! Baking a trained model into a `.nppp` estimator: the encoder and the mask
+//! network are evaluated at every node of their 4D grids (in large batches),
+//! quantized, and stored with the exported decoder and the output transform.
+//! Then the baked estimator is scored against the unbaked model on the same
+//! held-out rays with the same random numbers, so the difference is what
+//! the grid and the quantization cost.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use nppp_estimator::grid::{checked_node_count, node_coords};
+use nppp_estimator::{
+    BakedEstimator, DecodeRepairs, EstimatorMeta, EstimatorSampler, Exit, SamplerScratch,
+};
+use nppp_geom::SpherePair;
+use serde::{Deserialize, Serialize};
+
+use crate::backend::BackendKind;
+use crate::data::{DataSplit, is_heldout};
+use crate::eval::{BurnEstimator, EvalOptions, ExitSource, HeldoutMetrics, eval_rng, evaluate};
+use crate::io::load_dataset_where;
+use crate::train::{LoadedModel, load_model_dir};
+
+fn parse_bits(s: &str) -> std::result::Result<u8, String> {
+    match s.trim() {
+        "8" => Ok(8),
+        "4" => Ok(4),
+        "2" => Ok(2),
+        _ => Err(format!("{s}: bits must be 8, 4 or 2")),
+    }
+}
+
+/// Command-line options of `nppp bake`.
+#[derive(clap::Args, Clone, Debug)]
+pub struct BakeOptions {
+    /// Model directory written by `nppp train`.
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Latent grid resolution S (S^4 nodes x latent_dim channels).
+    #[arg(long, default_value_t = 32)]
+    pub latent_grid: u32,
+    /// Mask grid resolution (S^4 logits).
+    #[arg(long, default_value_t = 32)]
+    pub mask_grid: u32,
+    /// Bits per latent value: 8, 4 or 2.
+    #[arg(long, default_value_t = 8, value_parser = parse_bits)]
+    pub bits: u8,
+    /// Bits per mask logit: 8, 4 or 2.
+    #[arg(long, default_value_t = 8, value_parser = parse_bits)]
+    pub mask_bits: u8,
+    /// The `.nppp` file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Burn backend that evaluates the encoder and mask network.
+    #[arg(long, value_enum, default_value_t = BackendKind::default())]
+    pub backend: BackendKind,
+    /// Data file whose held-out rays score the result (default: the
+    /// training data recorded in the model directory).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Skip the held-out comparison of baked and unbaked estimators.
+    #[arg(long)]
+    pub no_eval: bool,
+    /// Held-out hit rays scored.
+    #[arg(long, default_value_t = 512)]
+    pub eval_rays: usize,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+impl BakeOptions {
+    pub fn new(model: impl Into<PathBuf>, out: impl Into<PathBuf>) -> Self {
+        Self {
+            model: model.into(),
+            latent_grid: 32,
+            mask_grid: 32,
+            bits: 8,
+            mask_bits: 8,
+            out: out.into(),
+            backend: BackendKind::default(),
+            data: None,
+            no_eval: false,
+            eval_rays: 512,
+            quiet: false,
+        }
+    }
+}
+
+/// What a bake produced and how accurate it is.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct BakeReport {
+    /// The file written (`None` for sweep rows, which write nothing).
+    pub out: Option<PathBuf>,
+    pub latent_res: u32,
+    pub mask_res: u32,
+    pub bits: u8,
+    pub mask_bits: u8,
+    /// Grids, decoder and parameters as the renderer holds them.
+    pub memory_bytes: usize,
+    pub seconds: f64,
+    /// Largest |baked latent - encoder output| over all nodes, in units of
+    /// that channel's quantization step (at most 0.5 up to rounding).
+    pub max_node_error_steps: f64,
+    pub unbaked: Option<HeldoutMetrics>,
+    pub baked: Option<HeldoutMetrics>,
+}
+
+/// Nodes per Burn call: see `eval::ROWS_PER_CALL`.
+const NODES_PER_CALL: usize = 32_768;
+
+/// Refuses grids whose f32 staging buffer would not fit comfortably.
+const MAX_STAGING_BYTES: usize = 8 << 30;
+
+fn check_res(name: &str, res: u32, channels: usize) -> Result<usize> {
+    if !(2..=256).contains(&res) {
+        bail!("--{name} {res}: the resolution must be between 2 and 256");
+    }
+    let n = checked_node_count(res).context("grid size overflows")?;
+    let bytes = n.saturating_mul(channels).saturating_mul(4);
+    if bytes > MAX_STAGING_BYTES {
+        bail!(
+            "--{name} {res}: {res}^4 nodes x {channels} channels need {:.1} GiB while baking \
+             (limit {} GiB); choose a smaller grid",
+            bytes as f64 / (1u64 << 30) as f64,
+            MAX_STAGING_BYTES >> 30
+        );
+    }
+    Ok(n)
+}
+
+fn progress(quiet: bool, len: u64, what: &str) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let pb = ProgressBar::new(len);
+    pb.set_style(
+        ProgressStyle::with_template(&format!(
+            "{what} {{bar:30}} {{pos}}/{{len}} nodes ({{per_sec}}, eta {{eta}})"
+        ))
+        .expect("static template"),
+    );
+    pb
+}
+
+/// Evaluates `f` (the encoder or the mask network) at every node of a grid
+/// of resolution `res`, node-major, `channels` values per node.
+fn eval_grid(
+    res: u32,
+    channels: usize,
+    quiet: bool,
+    what: &str,
+    mut f: impl FnMut(&[SpherePair]) -> Result<Vec<f32>>,
+) -> Result<Vec<f32>> {
+    let n = check_res(what, res, channels)?;
+    let pb = progress(quiet, n as u64, what);
+    let mut out = Vec::with_capacity(n * channels);
+    let mut pairs = Vec::with_capacity(NODES_PER_CALL);
+    let mut start = 0;
+    while start < n {
+        let end = (start + NODES_PER_CALL).min(n);
+        pairs.clear();
+        pairs.extend((start..end).map(|i| SpherePair(node_coords(res, i))));
+        let v = f(&pairs)?;
+        if v.len() != pairs.len() * channels {
+            bail!("{what}: got {} values for {} nodes", v.len(), pairs.len());
+        }
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            bail!(
+                "{what}: the network gives a non-finite value at node {} (the model is broken)",
+                start + i / channels
+            );
+        }
+        out.extend(v);
+        pb.set_position(end as u64);
+        start = end;
+    }
+    pb.finish_and_clear();
+    Ok(out)
+}
+
+/// The baked estimator through the renderer's own sampler.
+pub struct BakedSource {
+    pub sampler: EstimatorSampler,
+    pub repairs: DecodeRepairs,
+}
+
+impl ExitSource for BakedSource {
+    fn mask_logits(&mut self, pairs: &[SpherePair]) -> Result<Vec<f32>> {
+        Ok(pairs.iter().map(|p| self.sampler.mask_logit(p)).collect())
+    }
+
+    fn sample_exits(
+        &mut self,
+        pairs: &[SpherePair],
+        first_index: u64,
+        k: usize,
+        seed: u64,
+    ) -> Result<Vec<Exit>> {
+        let nd = self.sampler.noise_dim();
+        let mut scratch = SamplerScratch::new(&self.sampler);
+        let mut out = Vec::with_capacity(pairs.len() * k);
+        let mut noise = vec![0.0f32; k * nd];
+        for (i, p) in pairs.iter().enumerate() {
+            // The same r as the Burn side draws for this ray (eval_rng).
+            let mut rng = eval_rng(seed, first_index + i as u64);
+            noise.iter_mut().for_each(|x| *x = rng.normal());
+            for j in 0..k {
+                out.push(self.sampler.sample(
+                    p,
+                    &noise[j * nd..(j + 1) * nd],
+                    &mut scratch,
+                    &mut self.repairs,
+                ));
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// The f32 grids of a model, before quantization.
+pub struct RawGrids {
+    pub latent_res: u32,
+    pub latent: Vec<f32>,
+    pub mask_res: u32,
+    pub mask_logits: Vec<f32>,
+}
+
+/// Evaluates the encoder and the mask network at every node.
+pub fn compute_grids(loaded: &LoadedModel, latent_res: u32, mask_res: u32, quiet: bool) -> Result<RawGrids> {
+    let est = BurnEstimator::new(
+        &loaded.model,
+        loaded.meta.transform.clone(),
+        loaded.meta.dataset.max_internal_bounces,
+        loaded.model_config.noise_dim,
+    )?;
+    let latent = eval_grid(
+        latent_res,
+        loaded.model_config.latent_dim,
+        quiet,
+        "latent-grid",
+        |p| est.latents(p),
+    )?;
+    let mut est = est;
+    let mask_logits = eval_grid(mask_res, 1, quiet, "mask-grid", |p| est.mask_logits(p))?;
+    Ok(RawGrids {
+        latent_res,
+        latent,
+        mask_res,
+        mask_logits,
+    })
+}
+
+/// Quantizes raw grids into an estimator stamped with the model's identity.
+pub fn assemble(loaded: &LoadedModel, grids: &RawGrids, bits: u8, mask_bits: u8) -> Result<BakedEstimator> {
+    let ds = &loaded.meta.dataset;
+    let meta = EstimatorMeta {
+        mesh_name: ds.mesh_name.clone(),
+        mesh_hash: ds.mesh_hash,
+        material_name: ds.material_name.clone(),
+        material_hash: ds.material_hash,
+        sphere: ds.sphere,
+        latent_dim: loaded.model_config.latent_dim as u32,
+        noise_dim: loaded.model_config.noise_dim as u32,
+        max_internal_bounces: ds.max_internal_bounces,
+        notes: format!(
+            "nppp-nn: {} training steps; latent {}^4 x {} at {} bits, mask {}^4 at {} bits; \
+             decoder {} multiply-adds",
+            loaded.state.step,
+            grids.latent_res,
+            loaded.model_config.latent_dim,
+            bits,
+            grids.mask_res,
+            mask_bits,
+            loaded.model_config.decoder_macs()
+        ),
+    };
+    let decoder = loaded.model.export_decoder()?;
+    BakedEstimator::from_f32_grids_with_mask_bits(
+        meta,
+        grids.latent_res,
+        &grids.latent,
+        grids.mask_res,
+        &grids.mask_logits,
+        bits,
+        mask_bits,
+        decoder,
+        loaded.meta.transform.clone(),
+    )
+    .context("assembling the estimator")
+}
+
+/// Largest |dequantized node value - f32 value| in quantization steps.
+pub fn max_node_error_steps(baked: &BakedEstimator, latent: &[f32]) -> f64 {
+    let g = &baked.latent;
+    let c = g.channels as usize;
+    let mut worst = 0.0f64;
+    for (k, &x) in latent.iter().enumerate() {
+        let ch = k % c;
+        let err = (g.node_value(k / c, ch) - x).abs() as f64;
+        let step = g.scale[ch] as f64;
+        let e = if step > 0.0 {
+            err / step
+        } else if err > 0.0 {
+            f64::INFINITY
+        } else {
+            0.0
+        };
+        worst = worst.max(e);
+    }
+    worst
+}
+
+/// The held-out rays of the model's data (or of `data`), encoded with the
+/// model's own transform.
+pub fn load_heldout(loaded: &LoadedModel, data: Option<&Path>, quiet: bool) -> Result<DataSplit> {
+    let path = data.unwrap_or(&loaded.meta.data_path);
+    let every = loaded.train_config.holdout_every;
+    let (header, rays) = load_dataset_where(path, quiet, |i| is_heldout(i, every))
+        .with_context(|| format!("reading held-out rays from {}", path.display()))?;
+    if header.mesh_hash != loaded.meta.dataset.mesh_hash
+        || header.material_hash != loaded.meta.dataset.material_hash
+    {
+        bail!(
+            "{} was generated for {} / {}, the model for {} / {}",
+            path.display(),
+            header.mesh_name,
+            header.material_name,
+            loaded.meta.dataset.mesh_name,
+            loaded.meta.dataset.material_name
+        );
+    }
+    crate::data::encode_split(rays, header.k as usize, &loaded.meta.transform, true)
+}
+
+fn eval_pair(
+    loaded: &LoadedModel,
+    baked: BakedEstimator,
+    heldout: &DataSplit,
+    eval_rays: usize,
+) -> Result<(HeldoutMetrics, HeldoutMetrics)> {
+    let k = loaded.meta.dataset.k as usize;
+    let opts = EvalOptions {
+        max_hit_rays: eval_rays,
+        ..EvalOptions::default()
+    };
+    let tr = &loaded.meta.transform;
+    let mut unbaked = BurnEstimator::new(
+        &loaded.model,
+        tr.clone(),
+        loaded.meta.dataset.max_internal_bounces,
+        loaded.model_config.noise_dim,
+    )?;
+    let mu = evaluate(&mut unbaked, heldout, k, tr, &opts)?;
+    let mut bs = BakedSource {
+        sampler: EstimatorSampler::try_new(baked)?,
+        repairs: DecodeRepairs::default(),
+    };
+    let mb = evaluate(&mut bs, heldout, k, tr, &opts)?;
+    Ok((mu, mb))
+}
+
+/// `nppp bake`: writes the estimator file and reports its accuracy.
+pub fn bake(opts: &BakeOptions) -> Result<BakeReport> {
+    let t0 = Instant::now();
+    let device = opts.backend.device()?;
+    let loaded = load_model_dir(&opts.model, &device)?;
+    let grids = compute_grids(&loaded, opts.latent_grid, opts.mask_grid, opts.quiet)?;
+    let baked = assemble(&loaded, &grids, opts.bits, opts.mask_bits)?;
+    let max_node_error_steps = max_node_error_steps(&baked, &grids.latent);
+    if let Some(dir) = opts.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    baked
+        .save(&opts.out)
+        .with_context(|| format!("writing {}", opts.out.display()))?;
+    let memory_bytes = baked.memory_bytes();
+    let seconds = t0.elapsed().as_secs_f64();
+    let (unbaked, baked_m) = if opts.no_eval {
+        (None, None)
+    } else {
+        let heldout = load_heldout(&loaded, opts.data.as_deref(), opts.quiet)?;
+        let (a, b) = eval_pair(&loaded, baked, &heldout, opts.eval_rays)?;
+        (Some(a), Some(b))
+    };
+    Ok(BakeReport {
+        out: Some(opts.out.clone()),
+        latent_res: opts.latent_grid,
+        mask_res: opts.mask_grid,
+        bits: opts.bits,
+        mask_bits: opts.mask_bits,
+        memory_bytes,
+        seconds,
+        max_node_error_steps,
+        unbaked,
+        baked: baked_m,
+    })
+}
+
+/// Held-out accuracy of the baked estimator at several grid resolutions
+/// (latent and mask grids alike) and latent bit depths, against the unbaked
+/// model; writes no file. The encoder runs once per resolution.
+pub fn bake_sweep(opts: &BakeOptions, resolutions: &[u32], bits: &[u8]) -> Result<Vec<BakeReport>> {
+    let device = opts.backend.device()?;
+    let loaded = load_model_dir(&opts.model, &device)?;
+    let heldout = load_heldout(&loaded, opts.data.as_deref(), opts.quiet)?;
+    let mut rows = Vec::new();
+    for &res in resolutions {
+        let t0 = Instant::now();
+        let grids = compute_grids(&loaded, res, res, opts.quiet)?;
+        let grid_s = t0.elapsed().as_secs_f64();
+        for &b in bits {
+            let t1 = Instant::now();
+            let baked = assemble(&loaded, &grids, b, opts.mask_bits)?;
+            let max_node_error_steps = max_node_error_steps(&baked, &grids.latent);
+            let memory_bytes = baked.memory_bytes();
+            let seconds = grid_s + t1.elapsed().as_secs_f64();
+            let (u, m) = eval_pair(&loaded, baked, &heldout, opts.eval_rays)?;
+            rows.push(BakeReport {
+                out: None,
+                latent_res: res,
+                mask_res: res,
+                bits: b,
+                mask_bits: opts.mask_bits,
+                memory_bytes,
+                seconds,
+                max_node_error_steps,
+                unbaked: Some(u),
+                baked: Some(m),
+            });
+        }
+    }
+    Ok(rows)
+}
+
+/// A Markdown table of sweep rows (the README's).
+pub fn sweep_table(rows: &[BakeReport]) -> String {
+    let mut s = String::from(
+        "| grid | bits | memory | chamfer | throughput err | throughput bias | mask acc |\n|---|---|---|---|---|---|---|\n",
+    );
+    if let Some(u) = rows.first().and_then(|r| r.unbaked) {
+        s.push_str(&format!(
+            "| unbaked | - | - | {:.4} | {:.2}% | {:+.2}% | {:.2}% |\n",
+            u.chamfer,
+            100.0 * u.throughput_error,
+            100.0 * u.throughput_bias,
+            100.0 * u.mask_accuracy
+        ));
+    }
+    for r in rows {
+        if let Some(b) = r.baked {
+            s.push_str(&format!(
+                "| {}^4 | {} | {:.2} MiB | {:.4} | {:.2}% | {:+.2}% | {:.2}% |\n",
+                r.latent_res,
+                r.bits,
+                r.memory_bytes as f64 / (1u64 << 20) as f64,
+                b.chamfer,
+                100.0 * b.throughput_error,
+                100.0 * b.throughput_bias,
+                100.0 * b.mask_accuracy
+            ));
+        }
+    }
+    s
+}

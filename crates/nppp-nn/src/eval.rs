@@ -1,0 +1,298 @@
+//! Held-out accuracy of an estimator, trained (Burn) or baked (the
+//! renderer's sampler): the same code scores both, so their numbers compare.
+//!
+//! Every exit is scored after `ExitTransform::decode`, i.e. as the renderer
+//! would use it (normalized directions, clamped throughputs); Chamfer and
+//! energy distances are then taken in the encoded feature space, like the
+//! training loss.
+
+use anyhow::{Context, Result, bail};
+use burn::module::Module;
+use burn::tensor::{Device, Tensor, TensorData};
+use nppp_estimator::{DecodeRepairs, EXIT_FEATURES, Exit, ExitTransform};
+use nppp_geom::{SampleRng, SpherePair, luminance};
+use serde::{Deserialize, Serialize};
+
+use crate::data::DataSplit;
+use crate::features::{INPUT_FEATURES, ray_features};
+use crate::loss::reference;
+use crate::model::NpppModel;
+
+/// Something that can answer the estimator's two questions for many rays.
+pub trait ExitSource {
+    /// The mask logit of each ray (positive = predicted hit).
+    fn mask_logits(&mut self, pairs: &[SpherePair]) -> Result<Vec<f32>>;
+    /// `k` decoded exits for each ray, `[pairs.len()][k]`; `first_index` is
+    /// the index of `pairs[0]` in the evaluation set, so that each ray's
+    /// random numbers depend on the ray, not on how rays were batched.
+    fn sample_exits(
+        &mut self,
+        pairs: &[SpherePair],
+        first_index: u64,
+        k: usize,
+        seed: u64,
+    ) -> Result<Vec<Exit>>;
+}
+
+/// The random stream of the noise vectors of evaluation ray `index`.
+pub fn eval_rng(seed: u64, index: u64) -> SampleRng {
+    SampleRng::new(seed, index, 0xE7A1)
+}
+
+/// Rows per Burn call: big enough to amortize Burn's per-call overhead
+/// (STACK.md: never call Burn per ray), small enough for a few MiB of tensors.
+const ROWS_PER_CALL: usize = 32_768;
+
+/// The trained model, run through Burn.
+pub struct BurnEstimator {
+    pub model: NpppModel,
+    /// A device without autodiff.
+    pub device: Device,
+    pub transform: ExitTransform,
+    pub max_bounces: u32,
+    pub noise_dim: usize,
+    pub repairs: DecodeRepairs,
+}
+
+impl BurnEstimator {
+    pub fn new(
+        model: &NpppModel,
+        transform: ExitTransform,
+        max_bounces: u32,
+        noise_dim: usize,
+    ) -> Result<Self> {
+        let model = model.valid();
+        let device = model
+            .decoder
+            .layers
+            .first()
+            .context("the decoder has no layers")?
+            .weight
+            .val()
+            .device()
+            .without_autodiff();
+        Ok(Self {
+            model,
+            device,
+            transform,
+            max_bounces,
+            noise_dim,
+            repairs: DecodeRepairs::default(),
+        })
+    }
+
+    fn features(&self, pairs: &[SpherePair]) -> Tensor<2> {
+        Tensor::from_data(
+            TensorData::new(ray_features(pairs), [pairs.len(), INPUT_FEATURES]),
+            &self.device,
+        )
+    }
+
+    /// Encoder output for each ray, `[pairs.len()][latent_dim]`.
+    pub fn latents(&self, pairs: &[SpherePair]) -> Result<Vec<f32>> {
+        let mut out = Vec::new();
+        for chunk in pairs.chunks(ROWS_PER_CALL) {
+            let z = self.model.encode(self.features(chunk));
+            out.extend(to_vec(z)?);
+        }
+        Ok(out)
+    }
+}
+
+pub(crate) fn to_vec<const D: usize>(t: Tensor<D>) -> Result<Vec<f32>> {
+    t.into_data()
+        .try_into_vec::<f32>()
+        .map_err(|e| anyhow::anyhow!("reading a tensor back: {e:?}"))
+}
+
+impl ExitSource for BurnEstimator {
+    fn mask_logits(&mut self, pairs: &[SpherePair]) -> Result<Vec<f32>> {
+        let mut out = Vec::with_capacity(pairs.len());
+        for chunk in pairs.chunks(ROWS_PER_CALL) {
+            out.extend(to_vec(self.model.mask_logits(self.features(chunk)))?);
+        }
+        Ok(out)
+    }
+
+    fn sample_exits(
+        &mut self,
+        pairs: &[SpherePair],
+        first_index: u64,
+        k: usize,
+        seed: u64,
+    ) -> Result<Vec<Exit>> {
+        let nd = self.noise_dim;
+        let per_call = (ROWS_PER_CALL / k.max(1)).max(1);
+        let mut out = Vec::with_capacity(pairs.len() * k);
+        for (ci, chunk) in pairs.chunks(per_call).enumerate() {
+            let mut noise = Vec::with_capacity(chunk.len() * k * nd);
+            for j in 0..chunk.len() {
+                let mut rng = eval_rng(seed, first_index + (ci * per_call + j) as u64);
+                noise.extend((0..k * nd).map(|_| rng.normal()));
+            }
+            let noise = Tensor::from_data(TensorData::new(noise, [chunk.len() * k, nd]), &self.device);
+            let y = to_vec(self.model.generate(self.features(chunk), noise, k))?;
+            for f in y.chunks_exact(EXIT_FEATURES) {
+                let f: &[f32; EXIT_FEATURES] = f.try_into().expect("chunk of EXIT_FEATURES");
+                out.push(self.transform.decode(f, self.max_bounces, &mut self.repairs));
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// How much of the held-out part to score.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EvalOptions {
+    /// Held-out hit rays whose exits are scored (the first ones).
+    pub max_hit_rays: usize,
+    /// Points per set for Chamfer and energy distance (capped by the file's k):
+    /// these cost k^2 per ray.
+    pub k_distance: usize,
+    /// Exits generated per ray for the mean throughput; more than the file's
+    /// k so that the model side adds little noise to the comparison.
+    pub k_mean: usize,
+    pub seed: u64,
+}
+
+impl Default for EvalOptions {
+    fn default() -> Self {
+        Self {
+            max_hit_rays: 512,
+            k_distance: 128,
+            k_mean: 512,
+            seed: 0x5EED,
+        }
+    }
+}
+
+/// Held-out accuracy. Throughput and radiance errors are ratios of sums over
+/// rays (sum |predicted - real| / sum real), i.e. relative to the average
+/// brightness, so dark rays do not blow them up.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct HeldoutMetrics {
+    pub rays: usize,
+    pub hit_rays: usize,
+    /// Symmetric Chamfer distance per ray (encoded space, squared distances).
+    pub chamfer: f64,
+    /// Energy distance per ray (encoded space).
+    pub energy: f64,
+    pub mask_bce: f64,
+    /// Fraction of rays whose mask prediction (logit > 0) is right.
+    pub mask_accuracy: f64,
+    /// Mean over rays of |mean predicted throughput - mean real throughput|
+    /// (luminance), divided by the mean real throughput.
+    pub throughput_error: f64,
+    /// The same, signed: positive = the estimator is too bright.
+    pub throughput_bias: f64,
+    /// What `throughput_error` would be for a perfect model, because the
+    /// real means themselves come from only k samples (split-half estimate).
+    pub throughput_noise_floor: f64,
+    /// Like `throughput_error` for the radiance gathered inside; absolute
+    /// (not relative) when the object emits nothing.
+    pub radiance_error: f64,
+    pub radiance_bias: f64,
+    /// Mean real throughput luminance over the scored rays (the denominator).
+    pub mean_throughput: f64,
+}
+
+/// Scores `source` on `split` (which must carry raw exits, as the held-out
+/// part does).
+pub fn evaluate(
+    source: &mut dyn ExitSource,
+    split: &DataSplit,
+    k: usize,
+    transform: &ExitTransform,
+    opts: &EvalOptions,
+) -> Result<HeldoutMetrics> {
+    if split.is_empty() {
+        bail!("the held-out part is empty");
+    }
+    if split.raw_exits.len() != split.hits() * k {
+        bail!("the held-out part carries no raw exits to compare with");
+    }
+    let mut m = HeldoutMetrics {
+        rays: split.len(),
+        ..Default::default()
+    };
+    // Mask: every held-out ray.
+    let logits = source.mask_logits(&split.pairs)?;
+    let labels: Vec<f32> = split.hit.iter().map(|&h| h as u8 as f32).collect();
+    m.mask_bce = stable_bce(&logits, &labels);
+    let correct = logits
+        .iter()
+        .zip(&split.hit)
+        .filter(|(l, h)| (**l > 0.0) == **h)
+        .count();
+    m.mask_accuracy = correct as f64 / split.len() as f64;
+
+    // Exits: the first `max_hit_rays` hits.
+    let n = split.hits().min(opts.max_hit_rays);
+    m.hit_rays = n;
+    if n == 0 {
+        return Ok(m);
+    }
+    let pairs: Vec<SpherePair> = split.hit_index[..n]
+        .iter()
+        .map(|&i| split.pairs[i])
+        .collect();
+    let k_gen = opts.k_mean.max(opts.k_distance.min(k)).max(1);
+    let kd = opts.k_distance.min(k).min(k_gen).max(1);
+    let generated = source.sample_exits(&pairs, 0, k_gen, opts.seed)?;
+    if generated.len() != n * k_gen {
+        bail!(
+            "the estimator returned {} exits for {n} rays x {k_gen}",
+            generated.len()
+        );
+    }
+    let encode = |es: &[Exit]| -> Vec<f32> { es.iter().flat_map(|e| transform.encode(e)).collect() };
+    let (mut tp_abs, mut tp_signed, mut tp_real, mut tp_floor) = (0.0, 0.0, 0.0, 0.0);
+    let (mut rd_abs, mut rd_signed, mut rd_real) = (0.0, 0.0, 0.0);
+    for i in 0..n {
+        let real = &split.raw_exits[i * k..(i + 1) * k];
+        let gen_ = &generated[i * k_gen..(i + 1) * k_gen];
+        m.chamfer += reference::chamfer(&encode(&gen_[..kd]), &encode(&real[..kd]), EXIT_FEATURES);
+        m.energy +=
+            reference::energy_distance(&encode(&gen_[..kd]), &encode(&real[..kd]), EXIT_FEATURES);
+        let mean = |es: &[Exit], f: fn(&Exit) -> f64| -> f64 {
+            es.iter().map(f).sum::<f64>() / es.len().max(1) as f64
+        };
+        let tp = |e: &Exit| luminance(e.throughput) as f64;
+        let rd = |e: &Exit| luminance(e.radiance) as f64;
+        let (r_tp, g_tp) = (mean(real, tp), mean(gen_, tp));
+        tp_abs += (g_tp - r_tp).abs();
+        tp_signed += g_tp - r_tp;
+        tp_real += r_tp;
+        if k >= 2 {
+            let h = k / 2;
+            tp_floor += 0.5 * (mean(&real[..h], tp) - mean(&real[h..2 * h], tp)).abs();
+        }
+        let (r_rd, g_rd) = (mean(real, rd), mean(gen_, rd));
+        rd_abs += (g_rd - r_rd).abs();
+        rd_signed += g_rd - r_rd;
+        rd_real += r_rd;
+    }
+    let nf = n as f64;
+    m.chamfer /= nf;
+    m.energy /= nf;
+    m.mean_throughput = tp_real / nf;
+    let denom = tp_real.max(1e-12);
+    m.throughput_error = tp_abs / denom;
+    m.throughput_bias = tp_signed / denom;
+    m.throughput_noise_floor = tp_floor / denom;
+    // A non-emissive object: report the absolute stray radiance per ray.
+    let rd_denom = if rd_real > 1e-9 { rd_real } else { nf };
+    m.radiance_error = rd_abs / rd_denom;
+    m.radiance_bias = rd_signed / rd_denom;
+    Ok(m)
+}
+
+/// Mean BCE of logits against labels, stable for any logit.
+fn stable_bce(logits: &[f32], labels: &[f32]) -> f64 {
+    let mut s = 0.0f64;
+    for (&x, &y) in logits.iter().zip(labels) {
+        let x = x as f64;
+        s += x.max(0.0) - x * y as f64 + (-x.abs()).exp().ln_1p();
+    }
+    s / logits.len().max(1) as f64
+}

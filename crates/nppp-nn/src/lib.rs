@@ -1,0 +1,30 @@
+//! The neural estimator in Burn: encoder, decoder and mask network, their
+//! training (Chamfer + mask BCE, Adam, checkpoints) and baking to `.nppp`.
+//!
+//! The renderer never links this crate's training stack: it reads the baked
+//! file through `nppp-estimator`. This crate is what `nppp train` and
+//! `nppp bake` call; see the README for the model directory layout and the
+//! measured numbers behind the defaults.
+
+pub mod backend;
+pub mod bake;
+pub mod data;
+pub mod eval;
+pub mod features;
+pub mod io;
+pub mod loss;
+pub mod model;
+pub mod synthetic;
+pub mod train;
+
+pub use backend::BackendKind;
+pub use bake::{BakeOptions, BakeReport, bake, bake_sweep};
+pub use data::{DataSplit, RaySample, TrainingData};
+pub use eval::{BurnEstimator, EvalOptions, ExitSource, HeldoutMetrics, evaluate};
+pub use features::{INPUT_FEATURES, ray_features};
+pub use io::{DatasetInfo, ModelMeta, load_dataset, load_dataset_where, synthetic_header};
+pub use model::{MlpNet, ModelConfig, NpppModel};
+pub use train::{
+    LoadedModel, TrainConfig, TrainError, TrainOptions, TrainReport, load_model_dir, train,
+    train_with_data,
+};

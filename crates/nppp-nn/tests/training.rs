@@ -1,0 +1,160 @@
+//! Training on synthetic data: it learns, it is reproducible, it resumes,
+//! and it stops cleanly on a non-finite loss.
+
+use std::fs;
+use std::path::PathBuf;
+
+use nppp_nn::synthetic::SyntheticObject;
+use nppp_nn::train::files;
+use nppp_nn::{BackendKind, DatasetInfo, synthetic_header, TrainError, TrainOptions, TrainingData, train_with_data};
+
+fn tmp(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("nppp-nn-{name}"));
+    let _ = fs::remove_dir_all(&d);
+    d
+}
+
+fn mirror_data(n: usize, k: usize) -> (DatasetInfo, TrainingData) {
+    let rays = SyntheticObject::Mirror { radius: 0.6 }.rays(n, k, 11);
+    (synthetic_header("mirror", k), TrainingData::build(rays, k, 10).unwrap())
+}
+
+/// A small, fast configuration on NdArray.
+fn opts(out: &PathBuf) -> TrainOptions {
+    let mut o = TrainOptions::new("synthetic", out);
+    o.backend = BackendKind::Ndarray;
+    o.quiet = true;
+    o.batch = Some(16);
+    o.k = Some(8);
+    o.mask_batch = Some(64);
+    o.encoder_width = Some(64);
+    o.decoder_width = Some(32);
+    o.eval_rays = Some(32);
+    o.steps_per_epoch = Some(25);
+    o.seed = Some(5);
+    o.minutes = 0.0;
+    o
+}
+
+fn log_rows(dir: &PathBuf) -> Vec<Vec<String>> {
+    fs::read_to_string(dir.join(files::LOG))
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(String::from).collect())
+        .collect()
+}
+
+#[test]
+fn tiny_run_learns_and_is_deterministic() {
+    let (info, data) = mirror_data(1500, 8);
+    let dir = tmp("learns");
+    let mut o = opts(&dir);
+    o.epochs = Some(8);
+    let rep = train_with_data(&o, info.clone(), data.clone()).unwrap();
+    assert_eq!(rep.steps, 200);
+    let rows = log_rows(&dir);
+    assert_eq!(rows.len(), 8);
+    // Column 4 = training loss averaged over the epoch (chamfer + mask BCE).
+    let first: f64 = rows[0][5].parse().unwrap();
+    let last: f64 = rows[7][5].parse().unwrap();
+    assert!(last < first / 3.0, "chamfer {first} -> {last}");
+    let m = rep.metrics.unwrap();
+    assert!(m.mask_accuracy > 0.85, "{m:?}");
+
+    // Same seed, same data: the same log, bit for bit (CPU backend).
+    let dir2 = tmp("learns2");
+    train_with_data(&opts(&dir2).tap_epochs(8), info, data).unwrap();
+    let strip = |rows: Vec<Vec<String>>| -> Vec<Vec<String>> {
+        // elapsed_s and seconds_per_step are wall-clock: drop them.
+        rows.into_iter()
+            .map(|r| r.into_iter().enumerate().filter(|(i, _)| *i != 2 && *i != 17).map(|x| x.1).collect())
+            .collect()
+    };
+    assert_eq!(strip(log_rows(&dir)), strip(log_rows(&dir2)));
+}
+
+trait Tap {
+    fn tap_epochs(self, e: usize) -> Self;
+}
+impl Tap for TrainOptions {
+    fn tap_epochs(mut self, e: usize) -> Self {
+        self.epochs = Some(e);
+        self
+    }
+}
+
+#[test]
+fn resume_continues_from_the_saved_step() {
+    let (info, data) = mirror_data(600, 8);
+    // Uninterrupted: 3 epochs.
+    let a = tmp("resume-a");
+    train_with_data(&opts(&a).tap_epochs(3), info.clone(), data.clone()).unwrap();
+    // Interrupted after 1 epoch, then resumed to 3.
+    let b = tmp("resume-b");
+    let r1 = train_with_data(&opts(&b).tap_epochs(1), info.clone(), data.clone()).unwrap();
+    assert_eq!(r1.steps, 25);
+    // A second fresh run into the same directory is refused.
+    let err = train_with_data(&opts(&b).tap_epochs(1), info.clone(), data.clone()).unwrap_err();
+    assert!(err.to_string().contains("--resume"), "{err}");
+    let mut o = opts(&b).tap_epochs(3);
+    o.resume = true;
+    let r2 = train_with_data(&o, info.clone(), data.clone()).unwrap();
+    assert_eq!(r2.steps, 75);
+    assert_eq!(r2.steps_this_run, 50);
+    // Changing a hyperparameter on resume is refused with a clear message.
+    let mut o2 = o.clone();
+    o2.batch = Some(17);
+    let err = train_with_data(&o2, info, data).unwrap_err();
+    assert!(err.to_string().contains("batch"), "{err}");
+    // Same result as the uninterrupted run.
+    let wa = fs::read(a.join(files::CHECKPOINT).join(files::WEIGHTS)).unwrap();
+    let wb = fs::read(b.join(files::CHECKPOINT).join(files::WEIGHTS)).unwrap();
+    assert!(wa == wb, "resumed weights differ from the uninterrupted run's");
+    assert_eq!(log_rows(&b).len(), 3);
+}
+
+#[test]
+fn non_finite_loss_stops_and_keeps_the_last_good_checkpoint() {
+    let (info, data) = mirror_data(600, 8);
+    let dir = tmp("nan");
+    train_with_data(&opts(&dir).tap_epochs(1), info.clone(), data.clone()).unwrap();
+    let good = fs::read(dir.join(files::CHECKPOINT).join(files::WEIGHTS)).unwrap();
+    // An absurd learning rate blows the weights up within a few steps.
+    let mut o = opts(&dir).tap_epochs(4);
+    o.resume = true;
+    o.lr = Some(1e30);
+    let err = train_with_data(&o, info.clone(), data.clone()).unwrap_err();
+    let msg = err.to_string();
+    let Some(TrainError::NonFinite { step, last_good, .. }) = err.downcast_ref::<TrainError>() else {
+        panic!("expected a non-finite error, got {msg}");
+    };
+    assert!(*step > 25 && *step <= 100, "{msg}");
+    assert_eq!(*last_good, 25);
+    assert!(msg.contains(&format!("step {step}")), "{msg}");
+    let kept = fs::read(dir.join(files::CHECKPOINT).join(files::WEIGHTS)).unwrap();
+    assert!(kept == good, "the last good checkpoint was overwritten");
+    // And it still resumes normally.
+    let mut o = opts(&dir).tap_epochs(2);
+    o.resume = true;
+    assert_eq!(train_with_data(&o, info, data).unwrap().steps, 50);
+}
+
+#[test]
+fn corrupt_checkpoint_is_an_error_not_a_panic() {
+    let (info, data) = mirror_data(300, 4);
+    let dir = tmp("corrupt");
+    train_with_data(&opts(&dir).tap_epochs(1), info.clone(), data.clone()).unwrap();
+    fs::write(dir.join(files::CHECKPOINT).join(files::WEIGHTS), b"not a burnpack file").unwrap();
+    let mut o = opts(&dir).tap_epochs(2);
+    o.resume = true;
+    let err = train_with_data(&o, info.clone(), data.clone()).unwrap_err();
+    assert!(format!("{err:#}").contains("model.bpk"), "{err:#}");
+    fs::write(dir.join(files::CHECKPOINT).join(files::STATE), b"{").unwrap();
+    let err = train_with_data(&o, info, data).unwrap_err();
+    assert!(format!("{err:#}").contains("state.json"), "{err:#}");
+    let err = nppp_nn::load_model_dir(&dir.join("nope"), &BackendKind::Ndarray.device().unwrap())
+        .err()
+        .unwrap();
+    assert!(err.to_string().contains("does not exist"), "{err}");
+}

@@ -1,0 +1,218 @@
+//! Scattering functions in the local shading frame (normal = +z).
+//!
+//! `sample` returns the throughput weight f * |cos| / pdf directly, which is
+//! what the integrator multiplies by; `eval` returns f * |cos| and the pdf of
+//! sampling that direction, which next-event estimation and MIS need.
+
+use glam::{Vec2, Vec3};
+use nppp_geom::sampling::{cosine_hemisphere, cosine_hemisphere_pdf};
+use std::f32::consts::{FRAC_1_PI, PI, TAU};
+
+/// Roughness below this is treated as a perfect mirror: the GGX lobe is then
+/// narrower than f32 can resolve and its pdf overflows.
+pub const MIN_ALPHA: f32 = 1e-4;
+
+/// A scattering material as the integrator sees it at one vertex.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Bsdf {
+    Diffuse { albedo: Vec3 },
+    Conductor { reflectance: Vec3, alpha: f32 },
+    Dielectric { ior: f32 },
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct BsdfSample {
+    /// Local incident direction (towards the next vertex).
+    pub wi: Vec3,
+    /// f * |cos(wi)| / pdf.
+    pub weight: Vec3,
+    /// Solid-angle pdf; for delta lobes the discrete probability of the lobe.
+    pub pdf: f32,
+    pub delta: bool,
+}
+
+impl Bsdf {
+    /// Whether the lobe is a Dirac delta (no NEE, no MIS).
+    pub fn is_delta(&self) -> bool {
+        match *self {
+            Bsdf::Diffuse { .. } => false,
+            Bsdf::Conductor { alpha, .. } => alpha < MIN_ALPHA,
+            Bsdf::Dielectric { .. } => true,
+        }
+    }
+
+    /// Two-sided materials are evaluated with wo flipped into the upper hemisphere;
+    /// the dielectric keeps the geometric side (outside = +z).
+    pub fn two_sided(&self) -> bool {
+        !matches!(self, Bsdf::Dielectric { .. })
+    }
+
+    /// `wo` must be in the upper hemisphere for two-sided materials.
+    #[inline]
+    pub fn sample(&self, wo: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        match *self {
+            Bsdf::Diffuse { albedo } => {
+                let wi = cosine_hemisphere(u);
+                if wi.z <= 0.0 {
+                    return None;
+                }
+                Some(BsdfSample { wi, weight: albedo, pdf: cosine_hemisphere_pdf(wi.z), delta: false })
+            }
+            Bsdf::Conductor { reflectance, alpha } => {
+                if wo.z <= 0.0 {
+                    return None;
+                }
+                if alpha < MIN_ALPHA {
+                    let wi = Vec3::new(-wo.x, -wo.y, wo.z);
+                    return Some(BsdfSample { wi, weight: reflectance, pdf: 1.0, delta: true });
+                }
+                let m = ggx_sample_visible(wo, alpha, u);
+                let wi = reflect(wo, m);
+                if wi.z <= 0.0 {
+                    return None;
+                }
+                let pdf = ggx_reflection_pdf(wo, wi, m, alpha);
+                if !(pdf > 0.0) || !pdf.is_finite() {
+                    return None;
+                }
+                // f cos / pdf collapses to F * G1(wi) for visible-normal sampling.
+                Some(BsdfSample { wi, weight: reflectance * smith_g1(wi, alpha), pdf, delta: false })
+            }
+            Bsdf::Dielectric { ior } => {
+                let f = fresnel_dielectric(wo.z, ior);
+                if u_lobe < f {
+                    let wi = Vec3::new(-wo.x, -wo.y, wo.z);
+                    Some(BsdfSample { wi, weight: Vec3::ONE, pdf: f, delta: true })
+                } else {
+                    let entering = wo.z > 0.0;
+                    let eta = if entering { ior } else { 1.0 / ior };
+                    let wi = refract(wo, eta)?;
+                    // Radiance is scaled by (eta_i / eta_t)^2 across the boundary.
+                    let scale = 1.0 / (eta * eta);
+                    Some(BsdfSample { wi, weight: Vec3::splat(scale), pdf: 1.0 - f, delta: true })
+                }
+            }
+        }
+    }
+
+    /// f * |cos(wi)| and the pdf `sample` would give wi; zero for delta lobes.
+    #[inline]
+    pub fn eval(&self, wo: Vec3, wi: Vec3) -> (Vec3, f32) {
+        match *self {
+            Bsdf::Diffuse { albedo } => {
+                if wo.z <= 0.0 || wi.z <= 0.0 {
+                    return (Vec3::ZERO, 0.0);
+                }
+                (albedo * (FRAC_1_PI * wi.z), cosine_hemisphere_pdf(wi.z))
+            }
+            Bsdf::Conductor { reflectance, alpha } => {
+                if alpha < MIN_ALPHA || wo.z <= 0.0 || wi.z <= 0.0 {
+                    return (Vec3::ZERO, 0.0);
+                }
+                let h = wo + wi;
+                if h.length_squared() == 0.0 {
+                    return (Vec3::ZERO, 0.0);
+                }
+                let m = h.normalize();
+                let d = ggx_d(m, alpha);
+                let g = smith_g1(wo, alpha) * smith_g1(wi, alpha);
+                let f_cos = reflectance * (d * g / (4.0 * wo.z));
+                let pdf = ggx_reflection_pdf(wo, wi, m, alpha);
+                if !f_cos.is_finite() || !pdf.is_finite() {
+                    return (Vec3::ZERO, 0.0);
+                }
+                (f_cos, pdf)
+            }
+            Bsdf::Dielectric { .. } => (Vec3::ZERO, 0.0),
+        }
+    }
+}
+
+#[inline]
+pub fn reflect(wo: Vec3, m: Vec3) -> Vec3 {
+    2.0 * wo.dot(m) * m - wo
+}
+
+/// Refraction of `wo` through the z = 0 boundary with relative index `eta`
+/// (transmitted side over incident side); `None` on total internal reflection.
+#[inline]
+pub fn refract(wo: Vec3, eta: f32) -> Option<Vec3> {
+    let cos_i = wo.z.abs();
+    let sin2_t = (1.0 - cos_i * cos_i).max(0.0) / (eta * eta);
+    if sin2_t >= 1.0 {
+        return None;
+    }
+    let cos_t = (1.0 - sin2_t).sqrt();
+    let n_sign = if wo.z > 0.0 { 1.0 } else { -1.0 };
+    let wi = -wo / eta + Vec3::new(0.0, 0.0, n_sign * (cos_i / eta - cos_t));
+    Some(wi.normalize())
+}
+
+/// Unpolarized Fresnel reflectance of a smooth dielectric boundary; `cos_i`
+/// is measured against the outward (front) normal, `ior` is inside / outside.
+pub fn fresnel_dielectric(cos_i: f32, ior: f32) -> f32 {
+    let mut cos_i = cos_i.clamp(-1.0, 1.0);
+    let mut eta = ior;
+    if cos_i < 0.0 {
+        eta = 1.0 / eta;
+        cos_i = -cos_i;
+    }
+    let sin2_t = (1.0 - cos_i * cos_i) / (eta * eta);
+    if sin2_t >= 1.0 {
+        return 1.0;
+    }
+    let cos_t = (1.0 - sin2_t).max(0.0).sqrt();
+    let r_parl = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
+    let r_perp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
+    0.5 * (r_parl * r_parl + r_perp * r_perp)
+}
+
+/// Trowbridge-Reitz normal distribution.
+#[inline]
+pub fn ggx_d(m: Vec3, alpha: f32) -> f32 {
+    if m.z <= 0.0 {
+        return 0.0;
+    }
+    let a2 = alpha * alpha;
+    let t = (m.x * m.x + m.y * m.y) / a2 + m.z * m.z;
+    1.0 / (PI * a2 * t * t)
+}
+
+/// Smith's masking for one direction.
+#[inline]
+pub fn smith_g1(w: Vec3, alpha: f32) -> f32 {
+    if w.z <= 0.0 {
+        return 0.0;
+    }
+    let tan2 = (w.x * w.x + w.y * w.y) / (w.z * w.z);
+    let lambda = 0.5 * ((1.0 + alpha * alpha * tan2).sqrt() - 1.0);
+    1.0 / (1.0 + lambda)
+}
+
+/// pdf of reflecting `wo` into `wi` about `m` under visible-normal sampling.
+#[inline]
+fn ggx_reflection_pdf(wo: Vec3, wi: Vec3, m: Vec3, alpha: f32) -> f32 {
+    let _ = wi;
+    let wo_m = wo.dot(m);
+    if wo_m <= 0.0 || wo.z <= 0.0 {
+        return 0.0;
+    }
+    // D_wo(m) = G1(wo) max(0, wo.m) D(m) / wo.z ; Jacobian 1 / (4 wo.m).
+    smith_g1(wo, alpha) * ggx_d(m, alpha) / (4.0 * wo.z)
+}
+
+/// Heitz 2018, "Sampling the GGX Distribution of Visible Normals".
+pub fn ggx_sample_visible(wo: Vec3, alpha: f32, u: Vec2) -> Vec3 {
+    let vh = Vec3::new(alpha * wo.x, alpha * wo.y, wo.z).normalize();
+    let lensq = vh.x * vh.x + vh.y * vh.y;
+    let t1 = if lensq > 0.0 { Vec3::new(-vh.y, vh.x, 0.0) / lensq.sqrt() } else { Vec3::X };
+    let t2 = vh.cross(t1);
+    let r = u.x.sqrt();
+    let phi = TAU * u.y;
+    let p1 = r * phi.cos();
+    let mut p2 = r * phi.sin();
+    let s = 0.5 * (1.0 + vh.z);
+    p2 = (1.0 - s) * (1.0 - p1 * p1).max(0.0).sqrt() + s * p2;
+    let nh = p1 * t1 + p2 * t2 + (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt() * vh;
+    Vec3::new(alpha * nh.x, alpha * nh.y, nh.z.max(1e-6)).normalize()
+}

@@ -1,0 +1,45 @@
+//! The pinhole camera of SCENE_FORMAT.md.
+
+use glam::{Vec2, Vec3};
+use nppp_scene::Camera as CameraDesc;
+
+/// Precomputed camera basis; `ray` maps a film position (in pixels, row 0 at
+/// the top) to a world-space ray.
+#[derive(Clone, Copy, Debug)]
+pub struct PinholeCamera {
+    pub origin: Vec3,
+    forward: Vec3,
+    right: Vec3,
+    up: Vec3,
+    tan_half_fov: f32,
+    aspect: f32,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl PinholeCamera {
+    pub fn new(c: &CameraDesc) -> Self {
+        let forward = (c.look_at - c.position).normalize();
+        let right = forward.cross(c.up).normalize();
+        let up = right.cross(forward);
+        Self {
+            origin: c.position,
+            forward,
+            right,
+            up,
+            tan_half_fov: (c.fov_y_deg.to_radians() * 0.5).tan(),
+            aspect: c.width as f32 / c.height as f32,
+            width: c.width,
+            height: c.height,
+        }
+    }
+
+    /// The primary ray through film position `p` = (column, row) in pixels,
+    /// continuous: pixel (i, j) covers [i, i+1) x [j, j+1).
+    #[inline]
+    pub fn ray_dir(&self, p: Vec2) -> Vec3 {
+        let x = (2.0 * p.x / self.width as f32 - 1.0) * self.tan_half_fov * self.aspect;
+        let y = (1.0 - 2.0 * p.y / self.height as f32) * self.tan_half_fov;
+        (self.forward + self.right * x + self.up * y).normalize()
+    }
+}

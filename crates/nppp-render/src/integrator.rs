@@ -1,0 +1,249 @@
+//! The wavefront path tracer.
+//!
+//! A batch of paths (a tile's pixels times a slice of their samples) is
+//! advanced one bounce per step: intersect every live path, shade every hit
+//! (emission with MIS, next-event estimation with MIS, BSDF sampling, Russian
+//! roulette), then compact away the paths that ended. Each sample owns its
+//! random stream, so batching and thread count never change the image.
+//!
+//! Bounce convention (SCENE_FORMAT.md): `depth` counts scattering events so
+//! far; emission found after `depth` events contributes to the image when
+//! `depth <= max_bounces`, and NEE at a vertex contributes a path with
+//! `depth + 1` events.
+
+use crate::accel::SceneHit;
+use crate::bsdf::Bsdf;
+use crate::scene_data::{RenderScene, SurfaceKind};
+use glam::{Vec2, Vec3};
+use nppp_geom::sampling::power_heuristic;
+use nppp_geom::{Frame, SampleRng};
+
+/// Russian roulette starts after this many scattering events.
+pub const RR_START_DEPTH: u32 = 3;
+
+#[derive(Clone, Copy, Debug)]
+pub struct IntegratorSettings {
+    pub max_bounces: u32,
+    pub seed: u64,
+}
+
+/// One path's state between bounces.
+#[derive(Clone, Debug)]
+pub struct PathState {
+    /// Index of the pixel inside the batch's accumulation buffer.
+    pub slot: u32,
+    pub rng: SampleRng,
+    pub origin: Vec3,
+    pub dir: Vec3,
+    /// Throughput.
+    pub beta: Vec3,
+    /// Radiance gathered so far.
+    pub radiance: Vec3,
+    pub depth: u32,
+    /// BSDF pdf of the direction that produced this ray (for MIS at an emitter hit).
+    pub prev_pdf: f32,
+    /// Whether that direction came from a delta lobe (or an estimator exit): MIS weight 1.
+    pub prev_delta: bool,
+    /// Position of the vertex the ray left from.
+    pub prev_point: Vec3,
+    /// Product of the radiance scalings at refractions, undone for Russian roulette.
+    pub eta_scale: f32,
+}
+
+impl PathState {
+    pub fn camera(slot: u32, rng: SampleRng, origin: Vec3, dir: Vec3) -> Self {
+        Self {
+            slot,
+            rng,
+            origin,
+            dir,
+            beta: Vec3::ONE,
+            radiance: Vec3::ZERO,
+            depth: 0,
+            prev_pdf: 0.0,
+            prev_delta: true,
+            prev_point: origin,
+            eta_scale: 1.0,
+        }
+    }
+}
+
+/// Per-pixel accumulation in f64 so that very high sample counts do not drift.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PixelSum {
+    pub sum: [f64; 3],
+    pub valid: u32,
+    /// Samples dropped because they went non-finite.
+    pub dropped: u32,
+}
+
+impl PixelSum {
+    #[inline]
+    pub fn add(&mut self, l: Vec3) {
+        if l.is_finite() {
+            self.sum[0] += l.x as f64;
+            self.sum[1] += l.y as f64;
+            self.sum[2] += l.z as f64;
+            self.valid += 1;
+        } else {
+            self.dropped += 1;
+        }
+    }
+
+    pub fn mean(&self) -> [f32; 3] {
+        if self.valid == 0 {
+            return [0.0; 3];
+        }
+        let n = self.valid as f64;
+        [(self.sum[0] / n) as f32, (self.sum[1] / n) as f32, (self.sum[2] / n) as f32]
+    }
+}
+
+/// Reusable buffers of one worker: no allocation per bounce.
+#[derive(Default)]
+pub struct Wavefront {
+    pub paths: Vec<PathState>,
+    pub hits: Vec<Option<SceneHit>>,
+}
+
+/// Outcome of shading one path vertex.
+enum Next {
+    Continue,
+    Terminate,
+}
+
+impl Wavefront {
+    /// Runs every path in `self.paths` to completion, adding each to its slot in `film`.
+    pub fn run(&mut self, scene: &RenderScene, settings: &IntegratorSettings, film: &mut [PixelSum]) {
+        while !self.paths.is_empty() {
+            self.intersect(scene);
+            let mut w = 0;
+            for r in 0..self.paths.len() {
+                let hit = self.hits[r];
+                let next = shade(scene, settings, &mut self.paths[r], hit);
+                match next {
+                    Next::Continue => {
+                        self.paths.swap(w, r);
+                        self.hits.swap(w, r);
+                        w += 1;
+                    }
+                    Next::Terminate => {
+                        let p = &self.paths[r];
+                        film[p.slot as usize].add(p.radiance);
+                    }
+                }
+            }
+            self.paths.truncate(w);
+        }
+    }
+
+    fn intersect(&mut self, scene: &RenderScene) {
+        self.hits.clear();
+        self.hits.extend(self.paths.iter().map(|p| scene.accel.intersect(p.origin, p.dir, f32::INFINITY)));
+    }
+}
+
+/// Moves `p` off the surface with normal `n` to the side `dir` points to.
+#[inline]
+fn offset_point(p: Vec3, n: Vec3, dir: Vec3, eps: f32) -> Vec3 {
+    if dir.dot(n) >= 0.0 { p + n * eps } else { p - n * eps }
+}
+
+fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit: Option<SceneHit>) -> Next {
+    let Some(hit) = hit else { return Next::Terminate };
+    let p = path.origin + path.dir * hit.t;
+    let (ng, ns) = scene.normals_at(&hit);
+    let wo_world = -path.dir;
+    let bsdf = match scene.surface[hit.instance as usize] {
+        SurfaceKind::Emitter { radiance } => {
+            let cos_l = wo_world.dot(ng);
+            if cos_l > 0.0 {
+                let w = if path.prev_delta {
+                    1.0
+                } else {
+                    let li = (scene.light_base[hit.instance as usize] + hit.prim) as usize;
+                    let dist = (p - path.prev_point).length();
+                    power_heuristic(path.prev_pdf, scene.lights.pdf_solid_angle(li, dist, cos_l))
+                };
+                path.radiance += path.beta * radiance * w;
+            }
+            return Next::Terminate;
+        }
+        SurfaceKind::Scatter(b) => b,
+    };
+    if path.depth >= s.max_bounces {
+        return Next::Terminate;
+    }
+    // Two-sided materials see the surface from wo's side; glass keeps front = outside.
+    let (ng_side, ns_side) = if bsdf.two_sided() && wo_world.dot(ng) < 0.0 { (-ng, -ns) } else { (ng, ns) };
+    let frame = Frame::from_normal(ns_side);
+    let wo = frame.to_local(wo_world);
+    let eps = scene.offset_at(p, hit.instance);
+
+    // Next-event estimation (the random numbers are drawn even when unused so
+    // that the stream position never depends on scene content).
+    let u_light = path.rng.uniform();
+    let u_light2 = path.rng.uniform2();
+    if !bsdf.is_delta() && !scene.lights.is_empty() {
+        let origin = offset_point(p, ng_side, ng_side, eps);
+        if let Some(ls) = scene.lights.sample(origin, u_light, u_light2) {
+            // Only the side the path arrived on can receive light for opaque two-sided surfaces.
+            if ls.wi.dot(ng_side) > 0.0 {
+                let (f, bsdf_pdf) = bsdf.eval(wo, frame.to_local(ls.wi));
+                if f != Vec3::ZERO {
+                    let light_eps = (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL).max(scene.offset_floor);
+                    let tmax = ls.dist - light_eps;
+                    if tmax > 0.0 && !scene.accel.occluded(origin, ls.wi, tmax) {
+                        let w = power_heuristic(ls.pdf, bsdf_pdf);
+                        path.radiance += path.beta * f * ls.radiance * (w / ls.pdf);
+                    }
+                }
+            }
+        }
+    }
+
+    // BSDF sampling.
+    let u_lobe = path.rng.uniform();
+    let u_dir = path.rng.uniform2();
+    let u_rr = path.rng.uniform();
+    let Some(bs) = bsdf.sample(wo, u_lobe, u_dir) else { return Next::Terminate };
+    let wi = frame.to_world(bs.wi);
+    // The sampled direction must agree with the geometric surface: reflection
+    // stays on wo's side, transmission crosses (guards against shading normals).
+    let reflect_side = wi.dot(ng) * wo_world.dot(ng) > 0.0;
+    let transmits = matches!(bsdf, Bsdf::Dielectric { .. }) && bs.wi.z * wo.z < 0.0;
+    if reflect_side == transmits {
+        return Next::Terminate;
+    }
+    if transmits && let Bsdf::Dielectric { .. } = bsdf {
+        path.eta_scale /= bs.weight.x;
+    }
+    path.beta *= bs.weight;
+    path.prev_pdf = bs.pdf;
+    path.prev_delta = bs.delta;
+    path.prev_point = p;
+    path.depth += 1;
+    path.origin = offset_point(p, ng, wi, eps);
+    path.dir = wi;
+
+    if path.depth >= RR_START_DEPTH {
+        let q = (1.0 - (path.beta * path.eta_scale).max_element()).max(0.0);
+        if q > 0.0 {
+            if u_rr < q {
+                return Next::Terminate;
+            }
+            path.beta /= 1.0 - q;
+        }
+    }
+    if path.beta == Vec3::ZERO {
+        return Next::Terminate;
+    }
+    Next::Continue
+}
+
+/// The primary sample position of a camera sample: uniform inside the pixel.
+#[inline]
+pub fn jitter(rng: &mut SampleRng, x: u32, y: u32) -> Vec2 {
+    let u = rng.uniform2();
+    Vec2::new(x as f32 + u.x, y as f32 + u.y)
+}

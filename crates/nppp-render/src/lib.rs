@@ -1,0 +1,15 @@
+//! The path tracer: two-level BVH, materials, camera, the wavefront
+//! integrator, estimator integration, and image output.
+
+pub mod accel;
+pub mod bsdf;
+pub mod camera;
+pub mod image_io;
+pub mod integrator;
+pub mod lights;
+pub mod render;
+pub mod scene_data;
+
+pub use image_io::Image;
+pub use render::{RenderOptions, RenderStats, render};
+pub use scene_data::RenderScene;

@@ -1,0 +1,97 @@
+//! The render driver: tiles in parallel with rayon, one wavefront per worker,
+//! a progress bar on stderr, and the statistics a user needs to trust the image.
+
+use crate::image_io::Image;
+use crate::integrator::{IntegratorSettings, PathState, PixelSum, Wavefront, jitter};
+use crate::scene_data::RenderScene;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use nppp_geom::SampleRng;
+use rayon::prelude::*;
+use std::time::{Duration, Instant};
+
+pub const TILE: u32 = 16;
+/// Paths per wavefront batch: large enough to amortize batched work, small
+/// enough to stay in cache.
+pub const BATCH_PATHS: usize = 4096;
+
+#[derive(Clone, Copy, Debug)]
+pub struct RenderOptions {
+    pub spp: u32,
+    pub max_bounces: u32,
+    pub seed: u64,
+    pub progress: bool,
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct RenderStats {
+    pub seconds: f64,
+    pub samples: u64,
+    /// Samples dropped because their radiance was NaN or infinite.
+    pub dropped_samples: u64,
+}
+
+impl RenderStats {
+    pub fn samples_per_second(&self) -> f64 {
+        self.samples as f64 / self.seconds.max(1e-9)
+    }
+}
+
+/// Renders `scene` into a new image.
+pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats) {
+    let (w, h) = (scene.camera.width, scene.camera.height);
+    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(TILE)).flat_map(|ty| (0..w.div_ceil(TILE)).map(move |tx| (tx * TILE, ty * TILE))).collect();
+    let total = w as u64 * h as u64 * opts.spp as u64;
+    let bar = if opts.progress { ProgressBar::new(total) } else { ProgressBar::hidden() };
+    bar.set_draw_target(if opts.progress { ProgressDrawTarget::stderr_with_hz(4) } else { ProgressDrawTarget::hidden() });
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent}% {per_sec} samples ETA {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.enable_steady_tick(Duration::from_millis(250));
+    let settings = IntegratorSettings { max_bounces: opts.max_bounces, seed: opts.seed };
+    let start = Instant::now();
+    let results: Vec<((u32, u32), Vec<PixelSum>)> = tiles
+        .par_iter()
+        .map_init(Wavefront::default, |wf, &(x0, y0)| {
+            let tw = TILE.min(w - x0);
+            let th = TILE.min(h - y0);
+            let mut film = vec![PixelSum::default(); (tw * th) as usize];
+            let px = (tw * th) as usize;
+            let spp_per_batch = (BATCH_PATHS / px).max(1) as u32;
+            let mut s0 = 0;
+            while s0 < opts.spp {
+                let s1 = (s0 + spp_per_batch).min(opts.spp);
+                wf.paths.clear();
+                for y in 0..th {
+                    for x in 0..tw {
+                        let (gx, gy) = (x0 + x, y0 + y);
+                        let pixel = (gy as u64) * w as u64 + gx as u64;
+                        for s in s0..s1 {
+                            let mut rng = SampleRng::new(opts.seed, pixel, s as u64);
+                            let pos = jitter(&mut rng, gx, gy);
+                            let dir = scene.camera.ray_dir(pos);
+                            wf.paths.push(PathState::camera(y * tw + x, rng, scene.camera.origin, dir));
+                        }
+                    }
+                }
+                wf.run(scene, &settings, &mut film);
+                bar.inc(px as u64 * (s1 - s0) as u64);
+                s0 = s1;
+            }
+            ((x0, y0), film)
+        })
+        .collect();
+    bar.finish_and_clear();
+    let seconds = start.elapsed().as_secs_f64();
+    let mut img = Image::new(w, h);
+    let mut dropped = 0u64;
+    for ((x0, y0), film) in results {
+        let tw = TILE.min(w - x0);
+        for (i, p) in film.iter().enumerate() {
+            let (x, y) = (x0 + i as u32 % tw, y0 + i as u32 / tw);
+            img.pixels[(y * w + x) as usize] = p.mean();
+            dropped += p.dropped as u64;
+        }
+    }
+    (img, RenderStats { seconds, samples: total, dropped_samples: dropped })
+}

@@ -1,0 +1,124 @@
+//! The scene prepared for rendering: acceleration structure, per-instance
+//! shading data and the light list, built once from a loaded [`Scene`].
+
+use crate::accel::{Accel, SceneHit};
+use crate::bsdf::Bsdf;
+use crate::camera::PinholeCamera;
+use crate::lights::{LightTriangle, Lights};
+use glam::Vec3;
+use nppp_scene::{Material, Scene};
+
+/// What a surface does to a path; a closed enum so the hot loop matches instead of dispatching.
+#[derive(Clone, Copy, Debug)]
+pub enum SurfaceKind {
+    Scatter(Bsdf),
+    Emitter { radiance: Vec3 },
+}
+
+/// Everything the integrator reads, immutable and shared by all threads.
+pub struct RenderScene {
+    pub accel: Accel,
+    pub camera: PinholeCamera,
+    pub lights: Lights,
+    /// Per instance: its surface.
+    pub surface: Vec<SurfaceKind>,
+    /// Per instance: index of its first triangle in `lights.triangles` (emitters only).
+    pub light_base: Vec<u32>,
+    /// Per mesh: per-triangle vertex normals of smooth meshes.
+    pub shading_normals: Vec<Option<Vec<[Vec3; 3]>>>,
+    /// Per mesh: unit object-space geometric normal of each triangle.
+    pub geo_normals: Vec<Vec<Vec3>>,
+    /// Absolute floor for ray offsets: relative to the scene's size so that the
+    /// same scene at 1e-4 and 1e4 is offset alike.
+    pub offset_floor: f32,
+}
+
+/// Relative size of the offset that moves a spawned ray off its surface;
+/// a few hundred ulps of the coordinates involved.
+pub const OFFSET_REL: f32 = 2e-5;
+
+pub fn surface_of(m: &Material) -> SurfaceKind {
+    match *m {
+        Material::Diffuse { albedo } => SurfaceKind::Scatter(Bsdf::Diffuse { albedo }),
+        Material::Conductor { reflectance, roughness } => SurfaceKind::Scatter(Bsdf::Conductor { reflectance, alpha: roughness }),
+        Material::Dielectric { ior } => SurfaceKind::Scatter(Bsdf::Dielectric { ior }),
+        Material::Emitter { radiance } => SurfaceKind::Emitter { radiance },
+    }
+}
+
+impl RenderScene {
+    pub fn new(scene: &Scene) -> Self {
+        let inst: Vec<(usize, nppp_scene::Transform)> = scene.instances.iter().map(|i| (i.mesh, i.transform)).collect();
+        let accel = Accel::build(&scene.meshes, &inst);
+        let geo_normals: Vec<Vec<Vec3>> = scene
+            .meshes
+            .iter()
+            .map(|m| {
+                m.triangles
+                    .iter()
+                    .map(|t| {
+                        let p = |k: usize| m.positions[t[k] as usize];
+                        (p(1) - p(0)).cross(p(2) - p(0)).normalize_or_zero()
+                    })
+                    .collect()
+            })
+            .collect();
+        let mut surface = Vec::with_capacity(scene.instances.len());
+        let mut light_base = Vec::with_capacity(scene.instances.len());
+        let mut light_tris = Vec::new();
+        for (ii, i) in scene.instances.iter().enumerate() {
+            let s = surface_of(&scene.materials[i.material]);
+            light_base.push(light_tris.len() as u32);
+            if let SurfaceKind::Emitter { radiance } = s {
+                let x = &accel.instances[ii];
+                let mesh = &scene.meshes[i.mesh];
+                for t in &mesh.triangles {
+                    let p = |k: usize| x.point_to_world(mesh.positions[t[k] as usize]);
+                    let (v0, v1, v2) = (p(0), p(1), p(2));
+                    let c = (v1 - v0).cross(v2 - v0);
+                    let area = 0.5 * c.length();
+                    light_tris.push(LightTriangle { v0, e1: v1 - v0, e2: v2 - v0, normal: c.normalize_or_zero(), area, radiance });
+                }
+            }
+            surface.push(s);
+        }
+        let offset_floor = accel.scene_extent().max(f32::MIN_POSITIVE) * 1e-7;
+        Self {
+            camera: PinholeCamera::new(&scene.camera),
+            lights: Lights::new(light_tris),
+            surface,
+            light_base,
+            shading_normals: scene.meshes.iter().map(|m| m.shading_normals.clone()).collect(),
+            geo_normals,
+            accel,
+            offset_floor,
+        }
+    }
+
+    /// World-space geometric and shading normals at a hit (both unit, same side).
+    #[inline]
+    pub fn normals_at(&self, h: &SceneHit) -> (Vec3, Vec3) {
+        let x = &self.accel.instances[h.instance as usize];
+        let mesh = x.blas as usize;
+        let ng = x.dir_to_world(self.geo_normals[mesh][h.prim as usize]);
+        let ns = match &self.shading_normals[mesh] {
+            Some(n) => {
+                let [n0, n1, n2] = n[h.prim as usize];
+                let b0 = 1.0 - h.b1 - h.b2;
+                let s = x.dir_to_world(n0 * b0 + n1 * h.b1 + n2 * h.b2).normalize_or_zero();
+                // A shading normal on the far side of the surface is meaningless: fall back.
+                if s.dot(ng) > 0.0 { s } else { ng }
+            }
+            None => ng,
+        };
+        (ng, ns)
+    }
+
+    /// How far to move a ray origin at world point `p` off its surface.
+    #[inline]
+    pub fn offset_at(&self, p: Vec3, instance: u32) -> f32 {
+        let x = &self.accel.instances[instance as usize];
+        let mag = p.abs().max_element().max(x.translation.abs().max_element());
+        (mag * OFFSET_REL).max(self.offset_floor)
+    }
+}

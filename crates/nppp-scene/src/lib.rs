@@ -1,0 +1,18 @@
+//! Scene files (the contract of SCENE_FORMAT.md): JSON parsing, validation
+//! with errors that name the offending key path or file, the mesh sources
+//! (OBJ, quad, box, icosphere, procedural objects) and the resolved,
+//! render-ready [`Scene`].
+
+mod types;
+pub use types::*;
+mod error;
+pub mod hash;
+mod json;
+mod load;
+mod obj;
+pub mod procedural;
+mod shapes;
+pub use error::SceneError;
+pub use hash::{material_content_hash, mesh_content_hash};
+pub use load::{MAX_IMAGE_SIDE, load_scene, parse_scene};
+pub use shapes::{MAX_ICOSPHERE_SUBDIVISIONS, box_mesh, icosphere_mesh, quad_mesh};

@@ -1,0 +1,828 @@
+//! Scene loading: JSON text to a validated, resolved [`Scene`].
+//!
+//! Validation is by hand over our own JSON tree rather than through serde
+//! derives, because SCENE_FORMAT.md requires every error to name its key
+//! path (`instances[3].material`), and derive errors only give a line and
+//! column. Everything the contract leaves undefined is rejected, never
+//! guessed: the renderer must not silently render something else.
+
+use crate::error::SceneError;
+use crate::json::{self, Json, Num, join_index, join_key};
+use crate::obj::parse_obj;
+use crate::procedural::{Procedural, ProceduralError};
+use crate::shapes::{MAX_ICOSPHERE_SUBDIVISIONS, box_mesh, icosphere_mesh, quad_mesh};
+use crate::{Camera, Instance, Material, Mesh, RenderSettings, Scene, Transform};
+use glam::{DQuat, DVec3, Vec3};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// The largest image side the renderer accepts (SCENE_FORMAT.md: "an image
+/// over 16384 x 16384 pixels" cannot be rendered).
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+
+/// Reads and validates a scene file. Relative OBJ and estimator paths are
+/// resolved against the file's folder.
+pub fn load_scene(path: &Path) -> Result<Scene, SceneError> {
+    let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
+        file: path.to_path_buf(),
+        source,
+    })?;
+    parse_scene(&text, path)
+}
+
+/// Validates scene JSON that was read from `path` (or pretends to be: the
+/// path is only used to resolve relative OBJ/estimator paths and to name the
+/// file in messages, so tests can parse strings).
+pub fn parse_scene(json: &str, path: &Path) -> Result<Scene, SceneError> {
+    let root = json::parse(json).map_err(|f| SceneError::Json {
+        file: path.to_path_buf(),
+        line: f.line,
+        column: f.column,
+        key: f.key,
+        message: f.message,
+    })?;
+    let cx = Cx {
+        file: path,
+        dir: path.parent().unwrap_or(Path::new("")),
+    };
+    cx.scene(&root)
+}
+
+type Res<T> = Result<T, SceneError>;
+
+/// The file being loaded, for messages and relative paths.
+struct Cx<'a> {
+    file: &'a Path,
+    dir: &'a Path,
+}
+
+/// A JSON object whose keys have been checked against the allowed set.
+struct Fields<'j> {
+    entries: &'j [(String, Json)],
+    path: String,
+}
+
+impl<'j> Fields<'j> {
+    fn get(&self, key: &str) -> Option<(&'j Json, String)> {
+        self.entries
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, v)| (v, join_key(&self.path, key)))
+    }
+
+    fn req(&self, cx: &Cx, key: &str) -> Res<(&'j Json, String)> {
+        self.get(key).ok_or_else(|| {
+            cx.invalid(
+                &join_key(&self.path, key),
+                "required key is missing".to_string(),
+            )
+        })
+    }
+}
+
+/// A short list of names for "unknown name" messages, bounded so a scene
+/// with 10,000 meshes does not produce a 10,000-name message.
+fn name_list(names: &[String]) -> String {
+    const SHOWN: usize = 12;
+    let mut out: Vec<String> = names
+        .iter()
+        .take(SHOWN)
+        .map(|n| format!("\"{n}\""))
+        .collect();
+    if names.len() > SHOWN {
+        out.push(format!("and {} more", names.len() - SHOWN));
+    }
+    if out.is_empty() {
+        "none are defined".to_string()
+    } else {
+        format!("defined: {}", out.join(", "))
+    }
+}
+
+const TOP_KEYS: &[&str] = &["camera", "materials", "meshes", "instances", "render"];
+const CAMERA_KEYS: &[&str] = &["position", "look_at", "up", "fov_y_deg", "width", "height"];
+const MESH_SOURCES: &[&str] = &["quad", "box", "icosphere", "obj", "procedural"];
+const MESH_KEYS: &[&str] = &["quad", "box", "icosphere", "obj", "procedural", "smooth"];
+const INSTANCE_KEYS: &[&str] = &["mesh", "material", "transform", "estimator"];
+const TRANSFORM_KEYS: &[&str] = &["scale", "rotate", "translate"];
+const ROTATE_KEYS: &[&str] = &["axis", "deg"];
+const RENDER_KEYS: &[&str] = &["spp", "max_bounces", "estimator_min_bounces", "seed"];
+
+impl Cx<'_> {
+    fn invalid(&self, key: &str, message: String) -> SceneError {
+        SceneError::Invalid {
+            file: self.file.to_path_buf(),
+            key: key.to_string(),
+            message,
+        }
+    }
+
+    fn wrong_type(&self, key: &str, expected: &str, found: &Json) -> SceneError {
+        self.invalid(key, format!("expected {expected}, found {}", found.kind()))
+    }
+
+    fn object<'j>(&self, v: &'j Json, path: &str, allowed: &[&str]) -> Res<Fields<'j>> {
+        let Json::Obj(entries) = v else {
+            return Err(self.wrong_type(path, "an object", v));
+        };
+        if let Some((k, _)) = entries.iter().find(|(k, _)| !allowed.contains(&k.as_str())) {
+            return Err(self.invalid(
+                &join_key(path, k),
+                format!("unknown key \"{k}\" (allowed here: {})", allowed.join(", ")),
+            ));
+        }
+        Ok(Fields {
+            entries,
+            path: path.to_string(),
+        })
+    }
+
+    fn string<'j>(&self, v: &'j Json, path: &str) -> Res<&'j str> {
+        match v {
+            Json::Str(s) => Ok(s),
+            _ => Err(self.wrong_type(path, "a string", v)),
+        }
+    }
+
+    fn boolean(&self, v: &Json, path: &str) -> Res<bool> {
+        match v {
+            Json::Bool(b) => Ok(*b),
+            _ => Err(self.wrong_type(path, "true or false", v)),
+        }
+    }
+
+    /// A number that is finite as an f32 (everything downstream is f32, and
+    /// e.g. `1e39` would silently become infinity there). Returned as f64
+    /// for the few places (rotations) that compute in double precision.
+    fn number(&self, v: &Json, path: &str) -> Res<f64> {
+        let Json::Num(n) = v else {
+            return Err(self.wrong_type(path, "a number", v));
+        };
+        let x = n.as_f64();
+        if !(x as f32).is_finite() {
+            return Err(self.invalid(
+                path,
+                format!("{n} is not finite as a 32-bit float (magnitude above 3.4e38)"),
+            ));
+        }
+        Ok(x)
+    }
+
+    fn float(&self, v: &Json, path: &str) -> Res<f32> {
+        self.number(v, path).map(|x| x as f32)
+    }
+
+    fn vec3_f64(&self, v: &Json, path: &str) -> Res<DVec3> {
+        let Json::Arr(items) = v else {
+            return Err(self.wrong_type(path, "an array of 3 numbers", v));
+        };
+        if items.len() != 3 {
+            return Err(self.invalid(
+                path,
+                format!(
+                    "expected an array of 3 numbers, found {} elements",
+                    items.len()
+                ),
+            ));
+        }
+        let mut out = [0f64; 3];
+        for (i, (slot, item)) in out.iter_mut().zip(items).enumerate() {
+            *slot = self.number(item, &join_index(path, i))?;
+        }
+        Ok(DVec3::from_array(out))
+    }
+
+    fn vec3(&self, v: &Json, path: &str) -> Res<Vec3> {
+        self.vec3_f64(v, path).map(|d| d.as_vec3())
+    }
+
+    /// A non-negative integer. `64.0` counts (some JSON writers emit every
+    /// number as a float), `64.5` and `-1` do not; floats beyond 2^53 are
+    /// rejected because their decimal digits were already rounded away.
+    fn uint(&self, v: &Json, path: &str) -> Res<u64> {
+        let Json::Num(n) = v else {
+            return Err(self.wrong_type(path, "a non-negative integer", v));
+        };
+        match *n {
+            Num::U(u) => Ok(u),
+            Num::I(i) => {
+                Err(self.invalid(path, format!("must be a non-negative integer, found {i}")))
+            }
+            Num::F(f) => {
+                if f < 0.0 {
+                    Err(self.invalid(path, format!("must be a non-negative integer, found {f}")))
+                } else if f.fract() != 0.0 {
+                    Err(self.invalid(path, format!("must be an integer, found {f}")))
+                } else if f > 9_007_199_254_740_992.0 {
+                    Err(self.invalid(
+                        path,
+                        format!(
+                            "{f} is not exactly representable as written; write the integer without a decimal point or exponent"
+                        ),
+                    ))
+                } else {
+                    Ok(f as u64)
+                }
+            }
+        }
+    }
+
+    fn uint_in(&self, v: &Json, path: &str, min: u64, max: u64, why: &str) -> Res<u64> {
+        let n = self.uint(v, path)?;
+        if n < min {
+            Err(self.invalid(path, format!("must be at least {min}, found {n}{why}")))
+        } else if n > max {
+            Err(self.invalid(path, format!("must be at most {max}, found {n}{why}")))
+        } else {
+            Ok(n)
+        }
+    }
+
+    fn u32_in(&self, v: &Json, path: &str, min: u32, max: u32, why: &str) -> Res<u32> {
+        // The bounds keep the value inside u32.
+        self.uint_in(v, path, min.into(), max.into(), why)
+            .map(|n| n as u32)
+    }
+
+    fn scene(&self, root: &Json) -> Res<Scene> {
+        let top = self.object(root, "", TOP_KEYS)?;
+        let camera = {
+            let (v, p) = top.req(self, "camera")?;
+            self.camera(v, &p)?
+        };
+        let (materials, material_names) = {
+            let (v, p) = top.req(self, "materials")?;
+            self.materials(v, &p)?
+        };
+        let render = match top.get("render") {
+            Some((v, p)) => self.render(v, &p)?,
+            None => RenderSettings::default(),
+        };
+        // Instances are checked before meshes are built, so a typo in an
+        // instance is reported without first reading a large OBJ.
+        let (mesh_values, mesh_path) = {
+            let (v, p) = top.req(self, "meshes")?;
+            let Json::Obj(entries) = v else {
+                return Err(self.wrong_type(&p, "an object of named meshes", v));
+            };
+            (entries, p)
+        };
+        let mesh_names: Vec<String> = mesh_values.iter().map(|(k, _)| k.clone()).collect();
+        let instances = {
+            let (v, p) = top.req(self, "instances")?;
+            self.instances(v, &p, &mesh_names, &material_names)?
+        };
+        let meshes = mesh_values
+            .iter()
+            .map(|(name, v)| self.mesh(v, &join_key(&mesh_path, name)))
+            .collect::<Res<Vec<Mesh>>>()?;
+        Ok(Scene {
+            path: self.file.to_path_buf(),
+            camera,
+            materials,
+            material_names,
+            meshes,
+            mesh_names,
+            instances,
+            render,
+        })
+    }
+
+    fn camera(&self, v: &Json, path: &str) -> Res<Camera> {
+        let f = self.object(v, path, CAMERA_KEYS)?;
+        let (pv, pp) = f.req(self, "position")?;
+        let position = self.vec3(pv, &pp)?;
+        let (lv, lp) = f.req(self, "look_at")?;
+        let look_at = self.vec3(lv, &lp)?;
+        let (up, up_path) = match f.get("up") {
+            Some((uv, upth)) => (self.vec3(uv, &upth)?, upth),
+            None => (Vec3::Y, join_key(path, "up")),
+        };
+        let (fv, fp) = f.req(self, "fov_y_deg")?;
+        let fov_y_deg = self.float(fv, &fp)?;
+        if !(fov_y_deg > 0.0 && fov_y_deg < 180.0) {
+            return Err(self.invalid(
+                &fp,
+                format!("the vertical field of view must be strictly between 0 and 180 degrees, found {fov_y_deg}"),
+            ));
+        }
+        let side = |key: &str| -> Res<u32> {
+            let (v, p) = f.req(self, key)?;
+            self.u32_in(
+                v,
+                &p,
+                1,
+                MAX_IMAGE_SIDE,
+                " pixels (images are 1 to 16384 pixels on a side)",
+            )
+        };
+        let width = side("width")?;
+        let height = side("height")?;
+
+        // The renderer's own formulas (SCENE_FORMAT.md, Camera), in f32 as it
+        // computes them, must give finite unit vectors.
+        let delta = look_at - position;
+        let Some(forward) = delta.try_normalize() else {
+            let message = if delta == Vec3::ZERO {
+                format!("equals camera.position {position}, so there is no viewing direction")
+            } else {
+                format!("look_at - position = {delta} cannot be normalized in 32-bit floats")
+            };
+            return Err(self.invalid(&lp, message));
+        };
+        let Some(up_unit) = up.try_normalize() else {
+            return Err(self.invalid(&up_path, format!("{up} has no direction")));
+        };
+        let parallel =
+            forward.cross(up_unit).length() < 1e-6 || forward.cross(up).try_normalize().is_none();
+        if parallel {
+            return Err(self.invalid(
+                &up_path,
+                format!("{up} is parallel to the viewing direction {forward}, so the image has no defined right or up"),
+            ));
+        }
+        Ok(Camera {
+            position,
+            look_at,
+            up,
+            fov_y_deg,
+            width,
+            height,
+        })
+    }
+
+    fn materials(&self, v: &Json, path: &str) -> Res<(Vec<Material>, Vec<String>)> {
+        let Json::Obj(entries) = v else {
+            return Err(self.wrong_type(path, "an object of named materials", v));
+        };
+        let mut materials = Vec::with_capacity(entries.len());
+        let mut names = Vec::with_capacity(entries.len());
+        for (name, mv) in entries {
+            let mp = join_key(path, name);
+            materials.push(self.material(mv, &mp)?);
+            names.push(name.clone());
+        }
+        Ok((materials, names))
+    }
+
+    fn material(&self, v: &Json, path: &str) -> Res<Material> {
+        // The type decides which keys are allowed, so read it first.
+        let Json::Obj(entries) = v else {
+            return Err(self.wrong_type(path, "an object", v));
+        };
+        let type_path = join_key(path, "type");
+        let ty = match entries.iter().find(|(k, _)| k == "type") {
+            Some((_, t)) => self.string(t, &type_path)?,
+            None => return Err(self.invalid(&type_path, "required key is missing".into())),
+        };
+        let allowed: &[&str] = match ty {
+            "diffuse" => &["type", "albedo"],
+            "conductor" => &["type", "reflectance", "roughness"],
+            "dielectric" => &["type", "ior"],
+            "emitter" => &["type", "radiance"],
+            other => {
+                return Err(self.invalid(
+                    &type_path,
+                    format!("unknown material type \"{other}\" (known: diffuse, conductor, dielectric, emitter)"),
+                ));
+            }
+        };
+        let f = self.object(v, path, allowed)?;
+        let unit_rgb = |key: &str| -> Res<Vec3> {
+            let (cv, cp) = f.req(self, key)?;
+            let c = self.vec3(cv, &cp)?;
+            for (i, x) in c.to_array().into_iter().enumerate() {
+                if !(0.0..=1.0).contains(&x) {
+                    return Err(self.invalid(
+                        &join_index(&cp, i),
+                        format!("{x} is outside [0, 1]: a surface cannot reflect more light than it receives"),
+                    ));
+                }
+            }
+            Ok(c)
+        };
+        Ok(match ty {
+            "diffuse" => Material::Diffuse {
+                albedo: unit_rgb("albedo")?,
+            },
+            "conductor" => {
+                let reflectance = unit_rgb("reflectance")?;
+                let (rv, rp) = f.req(self, "roughness")?;
+                let roughness = self.float(rv, &rp)?;
+                if !(0.0..=1.0).contains(&roughness) {
+                    return Err(self.invalid(
+                        &rp,
+                        format!("{roughness} is outside [0, 1] (GGX alpha; 0 is a perfect mirror)"),
+                    ));
+                }
+                Material::Conductor {
+                    reflectance,
+                    roughness,
+                }
+            }
+            "dielectric" => {
+                let (iv, ip) = f.req(self, "ior")?;
+                let ior = self.float(iv, &ip)?;
+                if ior <= 0.0 {
+                    return Err(self.invalid(
+                        &ip,
+                        format!("index of refraction must be positive, found {ior}"),
+                    ));
+                }
+                Material::Dielectric { ior }
+            }
+            _ => {
+                let (rv, rp) = f.req(self, "radiance")?;
+                let radiance = self.vec3(rv, &rp)?;
+                for (i, x) in radiance.to_array().into_iter().enumerate() {
+                    if x < 0.0 {
+                        return Err(self.invalid(
+                            &join_index(&rp, i),
+                            format!("radiance must not be negative, found {x}"),
+                        ));
+                    }
+                }
+                Material::Emitter { radiance }
+            }
+        })
+    }
+
+    fn render(&self, v: &Json, path: &str) -> Res<RenderSettings> {
+        let f = self.object(v, path, RENDER_KEYS)?;
+        let mut r = RenderSettings::default();
+        if let Some((v, p)) = f.get("spp") {
+            r.spp = self.u32_in(v, &p, 1, u32::MAX, " samples per pixel")?;
+        }
+        if let Some((v, p)) = f.get("max_bounces") {
+            r.max_bounces = self.u32_in(v, &p, 0, u32::MAX, "")?;
+        }
+        if let Some((v, p)) = f.get("estimator_min_bounces") {
+            r.estimator_min_bounces = self.u32_in(v, &p, 0, u32::MAX, "")?;
+        }
+        if let Some((v, p)) = f.get("seed") {
+            r.seed = self.uint(v, &p)?;
+        }
+        Ok(r)
+    }
+
+    fn instances(
+        &self,
+        v: &Json,
+        path: &str,
+        mesh_names: &[String],
+        material_names: &[String],
+    ) -> Res<Vec<Instance>> {
+        let Json::Arr(items) = v else {
+            return Err(self.wrong_type(path, "an array of instances", v));
+        };
+        let mesh_index: HashMap<&str, usize> = mesh_names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.as_str(), i))
+            .collect();
+        let material_index: HashMap<&str, usize> = material_names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.as_str(), i))
+            .collect();
+        items
+            .iter()
+            .enumerate()
+            .map(|(i, iv)| {
+                let ip = join_index(path, i);
+                let f = self.object(iv, &ip, INSTANCE_KEYS)?;
+                let lookup = |key: &str,
+                              what: &str,
+                              index: &HashMap<&str, usize>,
+                              names: &[String]|
+                 -> Res<usize> {
+                    let (nv, np) = f.req(self, key)?;
+                    let name = self.string(nv, &np)?;
+                    index.get(name).copied().ok_or_else(|| {
+                        self.invalid(
+                            &np,
+                            format!("unknown {what} \"{name}\" ({})", name_list(names)),
+                        )
+                    })
+                };
+                let mesh = lookup("mesh", "mesh", &mesh_index, mesh_names)?;
+                let material = lookup("material", "material", &material_index, material_names)?;
+                let transform = match f.get("transform") {
+                    Some((tv, tp)) => self.transform(tv, &tp)?,
+                    None => Transform::default(),
+                };
+                let estimator = match f.get("estimator") {
+                    Some((ev, ep)) => {
+                        let rel = self.string(ev, &ep)?;
+                        if rel.is_empty() {
+                            return Err(self.invalid(&ep, "the estimator path is empty".into()));
+                        }
+                        Some(self.dir.join(rel))
+                    }
+                    None => None,
+                };
+                Ok(Instance {
+                    mesh,
+                    material,
+                    transform,
+                    estimator,
+                })
+            })
+            .collect()
+    }
+
+    fn transform(&self, v: &Json, path: &str) -> Res<Transform> {
+        let f = self.object(v, path, TRANSFORM_KEYS)?;
+        let mut t = Transform::default();
+        if let Some((sv, sp)) = f.get("scale") {
+            let s = self.float(sv, &sp)?;
+            // Checked after rounding to f32: 1e-50 is positive but becomes 0.
+            if s <= 0.0 {
+                let given = self.number(sv, &sp)?;
+                return Err(self.invalid(
+                    &sp,
+                    format!("scale must be positive (as a 32-bit float), found {given}"),
+                ));
+            }
+            t.scale = s;
+        }
+        if let Some((rv, rp)) = f.get("rotate") {
+            let r = self.object(rv, &rp, ROTATE_KEYS)?;
+            let (av, ap) = r.req(self, "axis")?;
+            let axis = self.vec3_f64(av, &ap)?;
+            let (dv, dp) = r.req(self, "deg")?;
+            let deg = self.number(dv, &dp)?;
+            let Some(axis) = axis.try_normalize() else {
+                return Err(self.invalid(&ap, format!("rotation axis {axis} has zero length")));
+            };
+            // Double precision so that 90 degrees about an axis gives the
+            // exactly rounded quaternion, the same as other implementations.
+            t.rotation = DQuat::from_axis_angle(axis, deg.to_radians()).as_quat();
+        }
+        if let Some((tv, tp)) = f.get("translate") {
+            t.translation = self.vec3(tv, &tp)?;
+        }
+        Ok(t)
+    }
+
+    fn mesh(&self, v: &Json, path: &str) -> Res<Mesh> {
+        let f = self.object(v, path, MESH_KEYS)?;
+        let sources: Vec<&str> = MESH_SOURCES
+            .iter()
+            .copied()
+            .filter(|s| f.get(s).is_some())
+            .collect();
+        let source = match sources.as_slice() {
+            [one] => *one,
+            [] => {
+                return Err(self.invalid(
+                    path,
+                    format!(
+                        "a mesh needs one source key, one of: {}",
+                        MESH_SOURCES.join(", ")
+                    ),
+                ));
+            }
+            many => {
+                return Err(self.invalid(
+                    path,
+                    format!(
+                        "a mesh has exactly one source, found {}",
+                        many.join(" and ")
+                    ),
+                ));
+            }
+        };
+        let smooth = match f.get("smooth") {
+            Some((sv, sp)) => {
+                if source != "obj" {
+                    return Err(self.invalid(
+                        &sp,
+                        format!("\"smooth\" applies only to obj meshes (this one is a {source}): the built-in shapes are flat shaded"),
+                    ));
+                }
+                self.boolean(sv, &sp)?
+            }
+            None => false,
+        };
+        let Some((sv, sp)) = f.get(source) else {
+            // `source` was taken from the keys present.
+            return Err(self.invalid(path, "internal error: mesh source vanished".into()));
+        };
+        match source {
+            "quad" => self.quad(sv, &sp),
+            "box" => self.box_source(sv, &sp),
+            "icosphere" => self.icosphere(sv, &sp),
+            "obj" => self.obj(sv, &sp, smooth),
+            _ => self.procedural(sv, &sp),
+        }
+    }
+
+    fn quad(&self, v: &Json, path: &str) -> Res<Mesh> {
+        let Json::Arr(items) = v else {
+            return Err(self.wrong_type(path, "an array of 4 points", v));
+        };
+        if items.len() != 4 {
+            return Err(self.invalid(
+                path,
+                format!("a quad needs exactly 4 points, found {}", items.len()),
+            ));
+        }
+        let mut p = [Vec3::ZERO; 4];
+        for (i, (slot, item)) in p.iter_mut().zip(items).enumerate() {
+            *slot = self.vec3(item, &join_index(path, i))?;
+        }
+        // Checked in f64 on the f32 points the renderer will use.
+        let d: Vec<DVec3> = p.iter().map(|x| x.as_dvec3()).collect();
+        let tri_normal = |a: DVec3, b: DVec3, c: DVec3| -> Option<DVec3> {
+            let (e1, e2) = (b - a, c - a);
+            let n = e1.cross(e2);
+            // Zero area, or sides so close to collinear (sine below 1e-6)
+            // that the normal is rounding noise.
+            (n.length() > 1e-6 * e1.length() * e2.length()).then_some(n)
+        };
+        let n1 = tri_normal(d[0], d[1], d[2]);
+        let n2 = tri_normal(d[0], d[2], d[3]);
+        match (n1, n2) {
+            (Some(n1), Some(n2)) if n1.dot(n2) > 0.0 => Ok(quad_mesh(p)),
+            (Some(_), Some(_)) => Err(self.invalid(
+                path,
+                "the quad is folded: its triangles (0,1,2) and (0,2,3) face opposite ways (are the points in order around the quad?)".into(),
+            )),
+            (None, _) => Err(self.invalid(
+                path,
+                "degenerate quad: points 0, 1, 2 are collinear or coincide, so triangle (0,1,2) has no area".into(),
+            )),
+            (_, None) => Err(self.invalid(
+                path,
+                "degenerate quad: points 0, 2, 3 are collinear or coincide, so triangle (0,2,3) has no area".into(),
+            )),
+        }
+    }
+
+    fn box_source(&self, v: &Json, path: &str) -> Res<Mesh> {
+        let f = self.object(v, path, &["min", "max"])?;
+        let (minv, minp) = f.req(self, "min")?;
+        let min = self.vec3(minv, &minp)?;
+        let (maxv, maxp) = f.req(self, "max")?;
+        let max = self.vec3(maxv, &maxp)?;
+        for (axis, (lo, hi)) in ["x", "y", "z"]
+            .into_iter()
+            .zip(min.to_array().into_iter().zip(max.to_array()))
+        {
+            if lo >= hi {
+                return Err(self.invalid(
+                    path,
+                    format!("min {min} is not below max {max} on the {axis} axis ({lo} >= {hi})"),
+                ));
+            }
+        }
+        Ok(box_mesh(min, max))
+    }
+
+    fn icosphere(&self, v: &Json, path: &str) -> Res<Mesh> {
+        let f = self.object(v, path, &["center", "radius", "subdivisions"])?;
+        let (cv, cp) = f.req(self, "center")?;
+        let center = self.vec3(cv, &cp)?;
+        let (rv, rp) = f.req(self, "radius")?;
+        let radius = self.float(rv, &rp)?;
+        if radius <= 0.0 {
+            return Err(self.invalid(&rp, format!("radius must be positive, found {radius}")));
+        }
+        let (sv, sp) = f.req(self, "subdivisions")?;
+        let subdivisions = self.u32_in(
+            sv,
+            &sp,
+            0,
+            MAX_ICOSPHERE_SUBDIVISIONS,
+            " levels (level 8 already has 1,310,720 triangles)",
+        )?;
+        Ok(icosphere_mesh(center, radius, subdivisions))
+    }
+
+    fn obj(&self, v: &Json, path: &str, smooth: bool) -> Res<Mesh> {
+        let rel = self.string(v, path)?;
+        if rel.is_empty() {
+            return Err(self.invalid(path, "the OBJ path is empty".into()));
+        }
+        let file = self.dir.join(rel);
+        let obj_err = |line: Option<usize>, message: String| SceneError::Obj {
+            file: self.file.to_path_buf(),
+            key: path.to_string(),
+            obj: file.clone(),
+            line,
+            message,
+        };
+        let bytes = std::fs::read(&file).map_err(|e| obj_err(None, format!("cannot read: {e}")))?;
+        // Lossy: a stray Latin-1 byte in a comment must not reject a mesh.
+        let text = String::from_utf8_lossy(&bytes);
+        parse_obj(&text, smooth).map_err(|e| obj_err(e.line, e.message))
+    }
+
+    fn procedural(&self, v: &Json, path: &str) -> Res<Mesh> {
+        let Json::Obj(entries) = v else {
+            return Err(self.wrong_type(path, "an object", v));
+        };
+        let type_path = join_key(path, "type");
+        let ty = match entries.iter().find(|(k, _)| k == "type") {
+            Some((_, t)) => self.string(t, &type_path)?,
+            None => return Err(self.invalid(&type_path, "required key is missing".into())),
+        };
+        // Missing parameters take the project's standard objects' values.
+        let [ds, tk, ms] = Procedural::defaults();
+        let u32_param = |f: &Fields, key: &str, default: u32| -> Res<u32> {
+            match f.get(key) {
+                Some((v, p)) => self.u32_in(v, &p, 0, u32::MAX, ""),
+                None => Ok(default),
+            }
+        };
+        let f32_param = |f: &Fields, key: &str, default: f32| -> Res<f32> {
+            match f.get(key) {
+                Some((v, p)) => self.float(v, &p),
+                None => Ok(default),
+            }
+        };
+        let proc = match (ty, ds, tk, ms) {
+            (
+                "displaced_sphere",
+                Procedural::DisplacedSphere {
+                    subdivisions,
+                    amplitude,
+                    frequency,
+                    seed,
+                },
+                _,
+                _,
+            ) => {
+                let f = self.object(
+                    v,
+                    path,
+                    &["type", "subdivisions", "amplitude", "frequency", "seed"],
+                )?;
+                Procedural::DisplacedSphere {
+                    subdivisions: u32_param(&f, "subdivisions", subdivisions)?,
+                    amplitude: f32_param(&f, "amplitude", amplitude)?,
+                    frequency: f32_param(&f, "frequency", frequency)?,
+                    seed: match f.get("seed") {
+                        Some((v, p)) => self.uint(v, &p)?,
+                        None => seed,
+                    },
+                }
+            }
+            (
+                "torus_knot",
+                _,
+                Procedural::TorusKnot {
+                    p,
+                    q,
+                    tube_radius,
+                    segments,
+                    sides,
+                },
+                _,
+            ) => {
+                let f = self.object(
+                    v,
+                    path,
+                    &["type", "p", "q", "tube_radius", "segments", "sides"],
+                )?;
+                Procedural::TorusKnot {
+                    p: u32_param(&f, "p", p)?,
+                    q: u32_param(&f, "q", q)?,
+                    tube_radius: f32_param(&f, "tube_radius", tube_radius)?,
+                    segments: u32_param(&f, "segments", segments)?,
+                    sides: u32_param(&f, "sides", sides)?,
+                }
+            }
+            ("menger_sponge", _, _, Procedural::MengerSponge { level }) => {
+                let f = self.object(v, path, &["type", "level"])?;
+                Procedural::MengerSponge {
+                    level: u32_param(&f, "level", level)?,
+                }
+            }
+            _ => {
+                return Err(self.invalid(
+                    &type_path,
+                    format!("unknown procedural type \"{ty}\" (known: displaced_sphere, torus_knot, menger_sponge)"),
+                ));
+            }
+        };
+        let mesh = proc.build().map_err(|e| {
+            // Point at the parameter when the generator names one of ours.
+            let key = match &e {
+                ProceduralError::InvalidParameter { parameter, .. }
+                    if entries.iter().any(|(k, _)| k == parameter) =>
+                {
+                    join_key(path, parameter)
+                }
+                _ => path.to_string(),
+            };
+            self.invalid(&key, e.to_string())
+        })?;
+        Ok(Mesh {
+            positions: mesh.positions,
+            triangles: mesh.triangles,
+            shading_normals: None,
+        })
+    }
+}

@@ -1,0 +1,263 @@
+//! A small Wavefront OBJ reader for exactly what SCENE_FORMAT.md promises:
+//! `v`, `vn`, and `f` in the forms `v`, `v/vt`, `v//vn`, `v/vt/vn` with
+//! negative (relative) indices, polygons triangulated as the fan
+//! (p0, p(i), p(i+1)) in file order.
+//!
+//! Written by hand rather than with tobj because the contract fixes the
+//! triangulation and winding bit for bit and asks for errors with line
+//! numbers, and a general loader makes its own choices on both (tobj may
+//! re-triangulate, merge or reorder vertices). Everything else in the
+//! format (`vt` contents, `o`, `g`, `s`, `usemtl`, `mtllib`, `l`, `p`,
+//! free-form curves) is irrelevant to a single-material triangle mesh and
+//! is skipped; `vt` lines are still counted so that texture indices can be
+//! checked.
+
+use crate::Mesh;
+use glam::Vec3;
+
+/// What is wrong and, when one line is to blame, its 1-based number.
+#[derive(Debug)]
+pub(crate) struct ObjError {
+    pub line: Option<usize>,
+    pub message: String,
+}
+
+fn at(line: usize, message: impl Into<String>) -> ObjError {
+    ObjError {
+        line: Some(line),
+        message: message.into(),
+    }
+}
+
+/// One corner of a face, indices already 0-based and absolute.
+#[derive(Clone, Copy)]
+struct Corner {
+    v: usize,
+    vt: Option<usize>,
+    vn: Option<usize>,
+}
+
+/// Parses OBJ text. With `smooth`, every face must give a normal for every
+/// corner and the mesh carries them (normalized) as shading normals.
+pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
+    let mut positions: Vec<Vec3> = Vec::new();
+    let mut normals: Vec<Vec3> = Vec::new();
+    let mut texcoords = 0usize;
+    let mut corners: Vec<Corner> = Vec::new();
+    // (first corner, corner count, line number)
+    let mut faces: Vec<(usize, usize, usize)> = Vec::new();
+
+    for (i, raw) in text.lines().enumerate() {
+        let line = i + 1;
+        let content = raw.split('#').next().unwrap_or("");
+        let mut tokens = content.split_whitespace();
+        match tokens.next() {
+            Some("v") => positions.push(parse_vec3(&mut tokens, "v", line)?),
+            Some("vn") => normals.push(parse_vec3(&mut tokens, "vn", line)?),
+            Some("vt") => texcoords += 1,
+            Some("f") => {
+                let start = corners.len();
+                for tok in tokens {
+                    corners.push(parse_corner(
+                        tok,
+                        positions.len(),
+                        texcoords,
+                        normals.len(),
+                        line,
+                    )?);
+                }
+                let n = corners.len() - start;
+                if n < 3 {
+                    return Err(at(
+                        line,
+                        format!("a face needs at least 3 vertices, this one has {n}"),
+                    ));
+                }
+                faces.push((start, n, line));
+            }
+            _ => {}
+        }
+    }
+
+    if faces.is_empty() {
+        return Err(ObjError {
+            line: None,
+            message: "the file has no faces (`f` lines), so the mesh would be invisible".into(),
+        });
+    }
+    if u32::try_from(positions.len()).is_err() {
+        return Err(ObjError {
+            line: None,
+            message: format!("{} vertices are more than 2^32 - 1", positions.len()),
+        });
+    }
+
+    // Positive indices may point forward in the file, so they are checked
+    // against the final counts once everything is read.
+    for &(start, n, line) in &faces {
+        for c in &corners[start..start + n] {
+            check_index(c.v, positions.len(), "vertex", line)?;
+            if let Some(t) = c.vt {
+                check_index(t, texcoords, "texture coordinate", line)?;
+            }
+            if let Some(vn) = c.vn {
+                check_index(vn, normals.len(), "normal", line)?;
+            }
+        }
+    }
+
+    let triangle_count: usize = faces.iter().map(|&(_, n, _)| n - 2).sum();
+    let mut triangles = Vec::with_capacity(triangle_count);
+    let mut shading = smooth.then(|| Vec::with_capacity(triangle_count));
+    for &(start, n, line) in &faces {
+        let face = &corners[start..start + n];
+        let face_normals = match &shading {
+            Some(_) => Some(face_normals(face, &normals, line)?),
+            None => None,
+        };
+        for k in 1..n - 1 {
+            // Indices fit in u32: checked against positions.len() above.
+            triangles.push([face[0].v as u32, face[k].v as u32, face[k + 1].v as u32]);
+            if let (Some(out), Some(fnorm)) = (shading.as_mut(), face_normals.as_ref()) {
+                out.push([fnorm[0], fnorm[k], fnorm[k + 1]]);
+            }
+        }
+    }
+    Ok(Mesh {
+        positions,
+        triangles,
+        shading_normals: shading,
+    })
+}
+
+fn parse_vec3<'a>(
+    tokens: &mut impl Iterator<Item = &'a str>,
+    what: &str,
+    line: usize,
+) -> Result<Vec3, ObjError> {
+    let mut xyz = [0f32; 3];
+    for (k, slot) in xyz.iter_mut().enumerate() {
+        let tok = tokens.next().ok_or_else(|| {
+            at(
+                line,
+                format!("`{what}` needs 3 coordinates, found only {k}"),
+            )
+        })?;
+        let value: f32 = tok
+            .parse()
+            .map_err(|_| at(line, format!("`{what}` coordinate `{tok}` is not a number")))?;
+        if !value.is_finite() {
+            return Err(at(
+                line,
+                format!("`{what}` coordinate `{tok}` is not finite as a 32-bit float"),
+            ));
+        }
+        *slot = value;
+    }
+    // Further numbers (a `w`, or vertex colours some exporters append) carry
+    // nothing a flat-coloured triangle mesh uses.
+    Ok(Vec3::from_array(xyz))
+}
+
+/// Parses `v`, `v/vt`, `v//vn` or `v/vt/vn`, resolving negative indices
+/// against the counts defined so far, as the OBJ format says.
+fn parse_corner(
+    tok: &str,
+    nv: usize,
+    nvt: usize,
+    nvn: usize,
+    line: usize,
+) -> Result<Corner, ObjError> {
+    let parts: Vec<&str> = tok.split('/').collect();
+    let malformed = || {
+        at(
+            line,
+            format!("face vertex `{tok}` is not one of v, v/vt, v//vn, v/vt/vn"),
+        )
+    };
+    let (v, vt, vn) = match parts.as_slice() {
+        [v] => (*v, None, None),
+        [v, vt] => (*v, Some(*vt), None),
+        [v, "", vn] => (*v, None, Some(*vn)),
+        [v, vt, vn] => (*v, Some(*vt), Some(*vn)),
+        _ => return Err(malformed()),
+    };
+    if v.is_empty() || vt == Some("") || vn == Some("") {
+        return Err(malformed());
+    }
+    Ok(Corner {
+        v: resolve(v, nv, "vertex", line)?,
+        vt: vt
+            .map(|t| resolve(t, nvt, "texture coordinate", line))
+            .transpose()?,
+        vn: vn.map(|n| resolve(n, nvn, "normal", line)).transpose()?,
+    })
+}
+
+fn resolve(tok: &str, defined: usize, what: &str, line: usize) -> Result<usize, ObjError> {
+    let i: i64 = tok
+        .parse()
+        .map_err(|_| at(line, format!("{what} index `{tok}` is not an integer")))?;
+    if i > 0 {
+        // Stored 0-based; the range check happens after the whole file is read.
+        usize::try_from(i - 1).map_err(|_| at(line, format!("{what} index {i} is too large")))
+    } else if i < 0 {
+        let back = usize::try_from(i.unsigned_abs()).unwrap_or(usize::MAX);
+        defined.checked_sub(back).ok_or_else(|| {
+            at(
+                line,
+                format!(
+                    "relative {what} index {i} points before the first {what}: only {defined} defined so far"
+                ),
+            )
+        })
+    } else {
+        Err(at(
+            line,
+            format!("{what} index 0 is invalid (OBJ indices start at 1)"),
+        ))
+    }
+}
+
+fn check_index(i: usize, count: usize, what: &str, line: usize) -> Result<(), ObjError> {
+    if i < count {
+        Ok(())
+    } else {
+        Err(at(
+            line,
+            format!(
+                "{what} index {} points past the file's {count} {}",
+                i as u128 + 1,
+                plural(what, count)
+            ),
+        ))
+    }
+}
+
+fn plural(what: &str, count: usize) -> String {
+    match (what, count) {
+        (_, 1) => what.to_string(),
+        ("vertex", _) => "vertices".to_string(),
+        _ => format!("{what}s"),
+    }
+}
+
+/// The face's corner normals, normalized; `smooth` demands one per corner.
+fn face_normals(face: &[Corner], normals: &[Vec3], line: usize) -> Result<Vec<Vec3>, ObjError> {
+    face.iter()
+        .map(|c| {
+            let vn = c.vn.ok_or_else(|| {
+                at(
+                    line,
+                    "the mesh is \"smooth\": true but this face has no vertex normals (use v//vn or v/vt/vn)",
+                )
+            })?;
+            normals[vn].try_normalize().ok_or_else(|| {
+                at(
+                    line,
+                    format!("normal {} has zero length and cannot be used for smooth shading", vn + 1),
+                )
+            })
+        })
+        .collect()
+}

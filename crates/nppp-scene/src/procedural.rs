@@ -1,0 +1,1176 @@
+//! Procedural test objects that stress neural path prediction the way the
+//! thesis' Stanford dragon does (hundreds of thousands of triangles, concave,
+//! light bouncing many times between parts of the same object), without
+//! shipping a scanned mesh: every object is a closed, consistently oriented
+//! triangle mesh generated from a handful of numbers.
+//!
+//! All objects are centred on the origin and scaled so every vertex lies in
+//! the unit sphere: an estimator is trained on the object alone, and a fixed
+//! bounding sphere lets the same training setup serve every object.
+
+use glam::{DVec3, Vec3};
+use std::collections::HashMap;
+use std::f64::consts::{PI, TAU};
+use std::io::Write;
+use std::path::Path;
+
+/// Upper bound on generated triangles: past this a 2-core machine spends
+/// minutes on the BVH alone and the mesh no longer fits comfortably in memory,
+/// so such parameters are almost certainly a typo.
+pub const MAX_TRIANGLES: u64 = 20_000_000;
+
+/// The deepest Menger sponge: level 4 already has 672,768 triangles, level 5
+/// would have 13 million, all of them tiny flat squares that add nothing a
+/// level-4 sponge doesn't already exercise.
+pub const MAX_MENGER_LEVEL: u32 = 4;
+
+/// Torus-knot windings are capped so the self-intersection check (which
+/// samples the curve densely) stays fast and meaningful.
+pub const MAX_KNOT_WINDING: u32 = 100;
+
+/// A triangle mesh as plain arrays: positions and counter-clockwise
+/// (outward-facing) triangles.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TriMesh {
+    pub positions: Vec<Vec3>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// A procedural object and the few numbers that define it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Procedural {
+    /// A unit icosphere pushed in and out along its normal by seeded noise
+    /// whose zero set becomes a network of deep V-shaped creases between
+    /// overlapping lobes (a cabbage-rose look): narrow concave folds make light bounce many
+    /// times before escaping, as in the dragon's scales and coils.
+    /// `subdivisions` follows the scene format's icosphere (20 * 4^n
+    /// triangles), `amplitude` in [0, 1) is the relative depth of the
+    /// displacement, `frequency` the angular frequency of the lowest noise
+    /// octave (about 0.6 * `frequency` waves around a great circle; two
+    /// more octaves reach four times that).
+    DisplacedSphere {
+        subdivisions: u32,
+        amplitude: f32,
+        frequency: f32,
+        seed: u64,
+    },
+    /// A round tube along a (p, q) torus knot (p windings around the axis of
+    /// symmetry, q around the torus' core; p and q coprime). `tube_radius`
+    /// is in the knot's own units, where the torus has major radius 2 and
+    /// minor radius 1, before the whole object is scaled into the unit sphere.
+    /// `segments` rings of `sides` vertices each.
+    TorusKnot {
+        p: u32,
+        q: u32,
+        tube_radius: f32,
+        segments: u32,
+        sides: u32,
+    },
+    /// The Menger sponge at `level` (0 is a cube): flat faces, sharp
+    /// concave corners and tunnels that light can travel through.
+    MengerSponge { level: u32 },
+}
+
+/// Why a [`Procedural`] can't be built.
+#[derive(Debug, thiserror::Error)]
+pub enum ProceduralError {
+    #[error("{name} would have {triangles} triangles, more than the limit of {MAX_TRIANGLES}")]
+    TooManyTriangles { name: String, triangles: u64 },
+    #[error("{parameter} = {value} is invalid: {reason}")]
+    InvalidParameter {
+        parameter: &'static str,
+        value: String,
+        reason: String,
+    },
+    #[error(
+        "torus knot p = {p}, q = {q}: p and q must be coprime, otherwise the curve closes up early or is a link of several tubes"
+    )]
+    NotAKnot { p: u32, q: u32 },
+    #[error(
+        "torus knot p = {p}, q = {q}: tube_radius = {tube_radius} makes the tube intersect itself; at most about {limit:.4} fits"
+    )]
+    TubeSelfIntersection {
+        p: u32,
+        q: u32,
+        tube_radius: f32,
+        limit: f32,
+    },
+}
+
+impl Procedural {
+    /// The objects the project uses for testing: each is about the size of
+    /// the thesis' dragon (the sponge at level 3 is smaller, because level 4
+    /// is already twice the dragon).
+    pub fn defaults() -> [Procedural; 3] {
+        [
+            Procedural::DisplacedSphere {
+                subdivisions: 7,
+                amplitude: 0.3,
+                frequency: 6.0,
+                seed: 1,
+            },
+            Procedural::TorusKnot {
+                p: 2,
+                q: 3,
+                tube_radius: 0.5,
+                segments: 2048,
+                sides: 80,
+            },
+            Procedural::MengerSponge { level: 3 },
+        ]
+    }
+
+    /// A short, file-name-safe identifier, e.g. `torus-knot-2-3`.
+    pub fn name(&self) -> String {
+        match *self {
+            Procedural::DisplacedSphere {
+                subdivisions, seed, ..
+            } => format!("displaced-sphere-{subdivisions}-seed-{seed}"),
+            Procedural::TorusKnot { p, q, .. } => format!("torus-knot-{p}-{q}"),
+            Procedural::MengerSponge { level } => format!("menger-sponge-{level}"),
+        }
+    }
+
+    /// The number of triangles [`Procedural::build`] will produce, computed
+    /// without building, so absurd parameters fail before allocating.
+    pub fn triangle_count(&self) -> u64 {
+        match *self {
+            Procedural::DisplacedSphere { subdivisions, .. } => {
+                20u64.saturating_mul(4u64.saturating_pow(subdivisions))
+            }
+            Procedural::TorusKnot {
+                segments, sides, ..
+            } => 2 * u64::from(segments) * u64::from(sides),
+            // A level-L sponge's surface is 2 * 20^L + 4 * 8^L unit squares.
+            Procedural::MengerSponge { level } => {
+                let l = level.min(13);
+                2 * (2 * 20u64.pow(l) + 4 * 8u64.pow(l))
+            }
+        }
+    }
+
+    /// Builds the mesh: closed, watertight, outward-facing, inside the unit sphere.
+    pub fn build(&self) -> Result<TriMesh, ProceduralError> {
+        self.validate()?;
+        let triangles = self.triangle_count();
+        if triangles > MAX_TRIANGLES {
+            return Err(ProceduralError::TooManyTriangles {
+                name: self.name(),
+                triangles,
+            });
+        }
+        Ok(match *self {
+            Procedural::DisplacedSphere {
+                subdivisions,
+                amplitude,
+                frequency,
+                seed,
+            } => displaced_sphere(subdivisions, amplitude.into(), frequency.into(), seed),
+            Procedural::TorusKnot {
+                p,
+                q,
+                tube_radius,
+                segments,
+                sides,
+            } => torus_knot(p, q, tube_radius.into(), segments, sides),
+            Procedural::MengerSponge { level } => menger_sponge(level),
+        })
+    }
+
+    fn validate(&self) -> Result<(), ProceduralError> {
+        let invalid = |parameter, value: String, reason: &str| {
+            Err(ProceduralError::InvalidParameter {
+                parameter,
+                value,
+                reason: reason.to_owned(),
+            })
+        };
+        match *self {
+            Procedural::DisplacedSphere {
+                amplitude,
+                frequency,
+                ..
+            } => {
+                if !(amplitude.is_finite() && (0.0..1.0).contains(&amplitude)) {
+                    return invalid(
+                        "amplitude",
+                        amplitude.to_string(),
+                        "must be in [0, 1) so the radius stays positive and the surface can't fold through the centre",
+                    );
+                }
+                if !(frequency.is_finite() && frequency >= 0.0) {
+                    return invalid(
+                        "frequency",
+                        frequency.to_string(),
+                        "must be finite and >= 0",
+                    );
+                }
+            }
+            Procedural::TorusKnot {
+                p,
+                q,
+                tube_radius,
+                segments,
+                sides,
+            } => {
+                for (parameter, value) in [("p", p), ("q", q)] {
+                    if value == 0 || value > MAX_KNOT_WINDING {
+                        return invalid(
+                            parameter,
+                            value.to_string(),
+                            &format!("must be in 1..={MAX_KNOT_WINDING}"),
+                        );
+                    }
+                }
+                if gcd(p, q) != 1 {
+                    return Err(ProceduralError::NotAKnot { p, q });
+                }
+                // Below 8 rings per winding the polyline cuts corners so hard
+                // that rings tilt past each other and the tube turns inside out.
+                let min_segments = 8 * p.max(q);
+                if segments < min_segments {
+                    return invalid(
+                        "segments",
+                        segments.to_string(),
+                        &format!("a ({p}, {q}) knot needs at least {min_segments} rings"),
+                    );
+                }
+                if sides < 3 {
+                    return invalid(
+                        "sides",
+                        sides.to_string(),
+                        "a closed tube needs at least 3 sides",
+                    );
+                }
+                if !(tube_radius.is_finite() && tube_radius > 0.0) {
+                    return invalid(
+                        "tube_radius",
+                        tube_radius.to_string(),
+                        "must be finite and > 0",
+                    );
+                }
+                if !tube_fits(p, q, tube_radius.into()) {
+                    let limit = tube_radius_limit(p, q);
+                    return Err(ProceduralError::TubeSelfIntersection {
+                        p,
+                        q,
+                        tube_radius,
+                        limit: limit as f32,
+                    });
+                }
+            }
+            Procedural::MengerSponge { level } => {
+                if level > MAX_MENGER_LEVEL {
+                    return invalid(
+                        "level",
+                        level.to_string(),
+                        &format!("at most {MAX_MENGER_LEVEL} (level 5 is 13 million tiny squares)"),
+                    );
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+fn gcd(mut a: u32, mut b: u32) -> u32 {
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    a
+}
+
+/// Scales the object so its farthest vertex sits a hair inside the unit
+/// sphere: the hair absorbs f32 rounding so `|v| <= 1` holds exactly.
+fn into_unit_sphere(positions: &[DVec3]) -> Vec<Vec3> {
+    let max_norm = positions.iter().map(|p| p.length()).fold(0.0, f64::max);
+    let scale = if max_norm > 0.0 {
+        (1.0 - 1e-6) / max_norm
+    } else {
+        1.0
+    };
+    positions.iter().map(|&p| (p * scale).as_vec3()).collect()
+}
+
+// ---------------------------------------------------------------------------
+// Displaced sphere
+
+/// The scene format's icosphere, kept in f64 so deep subdivisions don't
+/// accumulate rounding in the midpoints.
+fn icosphere(subdivisions: u32) -> (Vec<DVec3>, Vec<[u32; 3]>) {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let mut positions: Vec<DVec3> = [
+        [-1.0, t, 0.0],
+        [1.0, t, 0.0],
+        [-1.0, -t, 0.0],
+        [1.0, -t, 0.0],
+        [0.0, -1.0, t],
+        [0.0, 1.0, t],
+        [0.0, -1.0, -t],
+        [0.0, 1.0, -t],
+        [t, 0.0, -1.0],
+        [t, 0.0, 1.0],
+        [-t, 0.0, -1.0],
+        [-t, 0.0, 1.0],
+    ]
+    .iter()
+    .map(|&v| DVec3::from_array(v).normalize())
+    .collect();
+    let mut triangles: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..subdivisions {
+        // Each edge is shared by two triangles; the cache gives both the same
+        // midpoint vertex, which keeps the mesh welded.
+        let mut midpoints: HashMap<u64, u32> = HashMap::with_capacity(triangles.len() * 3 / 2);
+        let mut midpoint = |a: u32, b: u32, positions: &mut Vec<DVec3>| -> u32 {
+            let key = (u64::from(a.min(b)) << 32) | u64::from(a.max(b));
+            *midpoints.entry(key).or_insert_with(|| {
+                let m = ((positions[a as usize] + positions[b as usize]) * 0.5).normalize();
+                positions.push(m);
+                (positions.len() - 1) as u32
+            })
+        };
+        let mut next = Vec::with_capacity(triangles.len() * 4);
+        for &[a, b, c] in &triangles {
+            let ab = midpoint(a, b, &mut positions);
+            let bc = midpoint(b, c, &mut positions);
+            let ca = midpoint(c, a, &mut positions);
+            next.extend_from_slice(&[[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
+        }
+        triangles = next;
+    }
+    (positions, triangles)
+}
+
+/// SplitMix64: a tiny, well-mixed generator, so the noise depends on nothing
+/// but the seed (no external crates, no platform-dependent RNG).
+struct SplitMix64(u64);
+
+impl SplitMix64 {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1) with 53 random bits.
+    fn next_f64(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
+}
+
+struct Wave {
+    direction: DVec3,
+    frequency: f64,
+    phase: f64,
+    weight: f64,
+}
+
+/// Band-limited noise on the sphere: a few plane waves per octave over three
+/// octaves. Plane waves are smooth and cheap, and with random directions
+/// their sum has no visible grid or pole, unlike lattice noise on a sphere.
+struct FoldNoise {
+    waves: Vec<Wave>,
+    inv_rms: f64,
+}
+
+impl FoldNoise {
+    const OCTAVES: u32 = 3;
+    const WAVES_PER_OCTAVE: u32 = 4;
+
+    fn new(frequency: f64, seed: u64) -> Self {
+        let mut rng = SplitMix64(seed);
+        let mut waves = Vec::new();
+        for octave in 0..Self::OCTAVES {
+            for _ in 0..Self::WAVES_PER_OCTAVE {
+                let z = 2.0 * rng.next_f64() - 1.0;
+                let azimuth = TAU * rng.next_f64();
+                let s = (1.0 - z * z).max(0.0).sqrt();
+                waves.push(Wave {
+                    direction: DVec3::new(s * azimuth.cos(), s * azimuth.sin(), z),
+                    // Jitter keeps waves of one octave from beating into a regular pattern.
+                    frequency: frequency * f64::from(1 << octave) * (0.8 + 0.4 * rng.next_f64()),
+                    phase: TAU * rng.next_f64(),
+                    weight: 0.5f64.powi(octave as i32),
+                });
+            }
+        }
+        let variance: f64 = waves.iter().map(|w| w.weight * w.weight / 2.0).sum();
+        FoldNoise {
+            waves,
+            inv_rms: 1.0 / variance.sqrt(),
+        }
+    }
+
+    /// In [-1, 1): -1 exactly on the zero set of the wave sum, which the
+    /// absolute value turns into sharp creases (ridged noise, inverted), and
+    /// approaching 1 on the rounded lobes between them. tanh bounds the
+    /// result without clipping flat plateaus.
+    fn fold(&self, p: DVec3) -> f64 {
+        let sum: f64 = self
+            .waves
+            .iter()
+            .map(|w| w.weight * (w.frequency * w.direction.dot(p) + w.phase).sin())
+            .sum();
+        2.0 * (sum * self.inv_rms).tanh().abs() - 1.0
+    }
+}
+
+/// Displacing purely along the radius keeps the surface star-shaped around
+/// the origin, so it can never intersect itself and every triangle keeps its
+/// orientation, however deep the folds are.
+fn displaced_sphere(subdivisions: u32, amplitude: f64, frequency: f64, seed: u64) -> TriMesh {
+    let (mut positions, triangles) = icosphere(subdivisions);
+    let noise = FoldNoise::new(frequency, seed);
+    for p in &mut positions {
+        *p *= 1.0 + amplitude * noise.fold(*p);
+    }
+    TriMesh {
+        positions: into_unit_sphere(&positions),
+        triangles,
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Torus knot
+
+/// Point, first and second derivative of the (p, q) torus knot on the torus
+/// with major radius 2 and minor radius 1, symmetry axis along y (the scene
+/// format's up), so the knot lies flat on a floor.
+fn knot(p: u32, q: u32, phi: f64) -> [DVec3; 3] {
+    let (p, q) = (f64::from(p), f64::from(q));
+    let (sp, cp) = (p * phi).sin_cos();
+    let (sq, cq) = (q * phi).sin_cos();
+    let rho = 2.0 + cq;
+    let d_rho = -q * sq;
+    let dd_rho = -q * q * cq;
+    let c = DVec3::new(rho * cp, sq, -rho * sp);
+    let d = DVec3::new(
+        d_rho * cp - p * rho * sp,
+        q * cq,
+        -d_rho * sp - p * rho * cp,
+    );
+    let dd = DVec3::new(
+        dd_rho * cp - 2.0 * p * d_rho * sp - p * p * rho * cp,
+        -q * q * sq,
+        -dd_rho * sp - 2.0 * p * d_rho * cp + p * p * rho * sp,
+    );
+    [c, d, dd]
+}
+
+/// Dense samples of the knot with their cumulative arc length.
+struct KnotSamples {
+    points: Vec<DVec3>,
+    arc: Vec<f64>,
+    length: f64,
+    min_curvature_radius: f64,
+}
+
+impl KnotSamples {
+    fn new(p: u32, q: u32) -> Self {
+        let n = (256 * (p + q)).max(1024) as usize;
+        let mut points = Vec::with_capacity(n);
+        let mut min_curvature_radius = f64::INFINITY;
+        for i in 0..n {
+            let [c, d, dd] = knot(p, q, TAU * i as f64 / n as f64);
+            points.push(c);
+            let bend = d.cross(dd).length();
+            if bend > 0.0 {
+                min_curvature_radius = min_curvature_radius.min(d.length().powi(3) / bend);
+            }
+        }
+        let mut arc = Vec::with_capacity(n);
+        let mut length = 0.0;
+        for i in 0..n {
+            arc.push(length);
+            length += points[i].distance(points[(i + 1) % n]);
+        }
+        KnotSamples {
+            points,
+            arc,
+            length,
+            min_curvature_radius,
+        }
+    }
+
+    /// A tube of radius r around a smooth curve is embedded when r is below
+    /// the curvature radius everywhere and any two points farther apart than
+    /// pi * r along the curve are at least 2r apart in space. (For a circle
+    /// of radius r the two conditions meet exactly, so the second adds no
+    /// false alarms for merely curved stretches.)
+    fn fits(&self, r: f64) -> bool {
+        if r >= self.min_curvature_radius {
+            return false;
+        }
+        let (min_arc, min_dist2) = (PI * r, 4.0 * r * r);
+        // Only points closer than 2r matter: bucket them in cells of that
+        // size and compare each with the 27 cells around it.
+        let cell_size = 2.0 * r;
+        let key = |p: DVec3| (p / cell_size).floor().as_i64vec3();
+        let mut grid: HashMap<glam::I64Vec3, Vec<usize>> = HashMap::new();
+        for (i, &p) in self.points.iter().enumerate() {
+            grid.entry(key(p)).or_default().push(i);
+        }
+        for (i, &p) in self.points.iter().enumerate() {
+            let centre = key(p);
+            for dz in -1..=1 {
+                for dy in -1..=1 {
+                    for dx in -1..=1 {
+                        let Some(cell) = grid.get(&(centre + glam::I64Vec3::new(dx, dy, dz)))
+                        else {
+                            continue;
+                        };
+                        for &j in cell.iter().filter(|&&j| j > i) {
+                            let along = self.arc[j] - self.arc[i];
+                            if along.min(self.length - along) >= min_arc
+                                && p.distance_squared(self.points[j]) < min_dist2
+                            {
+                                return false;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        true
+    }
+}
+
+fn tube_fits(p: u32, q: u32, r: f64) -> bool {
+    KnotSamples::new(p, q).fits(r)
+}
+
+/// Only computed for the error message, so a bisection is fast enough.
+fn tube_radius_limit(p: u32, q: u32) -> f64 {
+    let samples = KnotSamples::new(p, q);
+    let (mut lo, mut hi) = (0.0, samples.min_curvature_radius);
+    for _ in 0..24 {
+        let mid = 0.5 * (lo + hi);
+        if samples.fits(mid) {
+            lo = mid
+        } else {
+            hi = mid
+        }
+    }
+    lo
+}
+
+/// Rotation-minimising frames (the double-reflection method of Wang et al.
+/// 2008) keep the tube's vertex columns from twisting along the curve; the
+/// small angle the frames have turned after one full loop (the curve's total
+/// torsion) is spread evenly over all rings, so the last ring meets the
+/// first without a seam.
+fn torus_knot(p: u32, q: u32, tube_radius: f64, segments: u32, sides: u32) -> TriMesh {
+    let n = segments as usize;
+    let mut centres = Vec::with_capacity(n + 1);
+    let mut tangents = Vec::with_capacity(n + 1);
+    for i in 0..=n {
+        let [c, d, _] = knot(p, q, TAU * (i % n) as f64 / n as f64);
+        centres.push(c);
+        tangents.push(d.normalize());
+    }
+    let mut normals = Vec::with_capacity(n + 1);
+    normals.push(tangents[0].any_orthonormal_vector());
+    for i in 0..n {
+        let v1 = centres[i + 1] - centres[i];
+        let c1 = v1.length_squared();
+        let r_l = normals[i] - (2.0 / c1) * v1.dot(normals[i]) * v1;
+        let t_l = tangents[i] - (2.0 / c1) * v1.dot(tangents[i]) * v1;
+        let v2 = tangents[i + 1] - t_l;
+        let c2 = v2.length_squared();
+        let r = if c2 > 1e-30 {
+            r_l - (2.0 / c2) * v2.dot(r_l) * v2
+        } else {
+            r_l
+        };
+        // Re-orthonormalise against drift over thousands of steps.
+        let t = tangents[i + 1];
+        normals.push((r - t.dot(r) * t).normalize());
+    }
+    let (t0, r0, rn) = (tangents[0], normals[0], normals[n]);
+    let closure = r0.cross(rn).dot(t0).atan2(r0.dot(rn));
+
+    let sides_n = sides as usize;
+    let mut positions = Vec::with_capacity(n * sides_n);
+    for i in 0..n {
+        let t = tangents[i];
+        let (s, c) = (-closure * i as f64 / n as f64).sin_cos();
+        let normal = normals[i] * c + t.cross(normals[i]) * s;
+        let binormal = t.cross(normal);
+        for j in 0..sides_n {
+            let (sj, cj) = (TAU * j as f64 / sides_n as f64).sin_cos();
+            positions.push(centres[i] + tube_radius * (cj * normal + sj * binormal));
+        }
+    }
+    // With (tangent, normal, binormal) right-handed, going around the ring
+    // (j) then along the curve (i) turns counter-clockwise seen from outside.
+    let index = |i: usize, j: usize| ((i % n) * sides_n + j % sides_n) as u32;
+    let mut triangles = Vec::with_capacity(2 * n * sides_n);
+    for i in 0..n {
+        for j in 0..sides_n {
+            let (a, b) = (index(i, j), index(i, j + 1));
+            let (c, d) = (index(i + 1, j), index(i + 1, j + 1));
+            triangles.push([a, b, c]);
+            triangles.push([b, d, c]);
+        }
+    }
+    TriMesh {
+        positions: into_unit_sphere(&positions),
+        triangles,
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Menger sponge
+
+/// A cell of the 3^L grid is solid unless, at some base-3 digit, two or more
+/// of its coordinates are in the middle third. Emitting a square only
+/// between a solid and an empty cell gives exactly the sponge's surface; it
+/// is edge-manifold because two solid cells never touch along an edge alone
+/// (the digit that empties one diagonal neighbour would empty the other).
+fn menger_sponge(level: u32) -> TriMesh {
+    let n = 3usize.pow(level);
+    let solid_at = |mut x: usize, mut y: usize, mut z: usize| {
+        for _ in 0..level {
+            let middles =
+                usize::from(x % 3 == 1) + usize::from(y % 3 == 1) + usize::from(z % 3 == 1);
+            if middles >= 2 {
+                return false;
+            }
+            (x, y, z) = (x / 3, y / 3, z / 3);
+        }
+        true
+    };
+    let cell = |x: usize, y: usize, z: usize| (z * n + y) * n + x;
+    let mut solid = vec![false; n * n * n];
+    for z in 0..n {
+        for y in 0..n {
+            for x in 0..n {
+                solid[cell(x, y, z)] = solid_at(x, y, z);
+            }
+        }
+    }
+    let is_solid = |c: [i64; 3]| {
+        c.iter().all(|&v| (0..n as i64).contains(&v))
+            && solid[cell(c[0] as usize, c[1] as usize, c[2] as usize)]
+    };
+
+    // Lattice corners are shared by up to eight squares; a dense index map
+    // welds them without hashing.
+    let m = n + 1;
+    let mut vertex_of = vec![u32::MAX; m * m * m];
+    let mut lattice: Vec<[usize; 3]> = Vec::new();
+    let mut vertex = |c: [usize; 3]| {
+        let slot = &mut vertex_of[(c[2] * m + c[1]) * m + c[0]];
+        if *slot == u32::MAX {
+            *slot = lattice.len() as u32;
+            lattice.push(c);
+        }
+        *slot
+    };
+    let mut triangles = Vec::new();
+    for z in 0..n {
+        for y in 0..n {
+            for x in 0..n {
+                if !solid[cell(x, y, z)] {
+                    continue;
+                }
+                let c = [x, y, z];
+                for axis in 0..3 {
+                    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+                    for positive in [false, true] {
+                        let mut neighbour = c.map(|v| v as i64);
+                        neighbour[axis] += if positive { 1 } else { -1 };
+                        if is_solid(neighbour) {
+                            continue;
+                        }
+                        let mut corner = c;
+                        corner[axis] += usize::from(positive);
+                        let mut cu = corner;
+                        cu[u] += 1;
+                        let mut cuv = cu;
+                        cuv[v] += 1;
+                        let mut cv = corner;
+                        cv[v] += 1;
+                        // e_u x e_v = e_axis: (corner, +u, +u+v, +v) faces +axis.
+                        let quad = if positive {
+                            [corner, cu, cuv, cv]
+                        } else {
+                            [corner, cv, cuv, cu]
+                        }
+                        .map(&mut vertex);
+                        triangles.push([quad[0], quad[1], quad[2]]);
+                        triangles.push([quad[0], quad[2], quad[3]]);
+                    }
+                }
+            }
+        }
+    }
+    let half = n as f64 / 2.0;
+    let positions: Vec<DVec3> = lattice
+        .iter()
+        .map(|c| DVec3::new(c[0] as f64 - half, c[1] as f64 - half, c[2] as f64 - half))
+        .collect();
+    TriMesh {
+        positions: into_unit_sphere(&positions),
+        triangles,
+    }
+}
+
+// ---------------------------------------------------------------------------
+// OBJ output
+
+/// Writes a plain OBJ (`v x y z`, `f a b c`, 1-based). It goes through a
+/// temporary file in the same folder and a rename, so a reader (or a make
+/// rule checking timestamps) never sees a half-written mesh.
+pub fn write_obj(mesh: &TriMesh, path: &Path) -> std::io::Result<()> {
+    let file_name = path.file_name().ok_or_else(|| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("{} names no file", path.display()),
+        )
+    })?;
+    let mut temp_name = std::ffi::OsString::from(".");
+    temp_name.push(file_name);
+    temp_name.push(format!(".tmp-{}", std::process::id()));
+    let temp = path.with_file_name(temp_name);
+    let result = (|| {
+        let mut out = std::io::BufWriter::new(std::fs::File::create(&temp)?);
+        writeln!(
+            out,
+            "# {} vertices, {} triangles",
+            mesh.positions.len(),
+            mesh.triangles.len()
+        )?;
+        // f32's Display is the shortest text that parses back to the same bits.
+        for p in &mesh.positions {
+            writeln!(out, "v {} {} {}", p.x, p.y, p.z)?;
+        }
+        for t in &mesh.triangles {
+            writeln!(out, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+        }
+        let file = out.into_inner().map_err(|e| e.into_error())?;
+        file.sync_all()?;
+        std::fs::rename(&temp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temp);
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sphere(subdivisions: u32, seed: u64) -> Procedural {
+        Procedural::DisplacedSphere {
+            subdivisions,
+            amplitude: 0.3,
+            frequency: 4.0,
+            seed,
+        }
+    }
+
+    fn knot_with(p: u32, q: u32, tube_radius: f32, segments: u32, sides: u32) -> Procedural {
+        Procedural::TorusKnot {
+            p,
+            q,
+            tube_radius,
+            segments,
+            sides,
+        }
+    }
+
+    /// Every check a closed, welded, outward-facing, non-degenerate mesh in
+    /// the unit sphere must pass; returns the enclosed volume.
+    fn check_closed_mesh(mesh: &TriMesh) -> f64 {
+        assert!(!mesh.triangles.is_empty());
+        for (i, p) in mesh.positions.iter().enumerate() {
+            assert!(p.is_finite(), "vertex {i} is {p}");
+            assert!(p.length() <= 1.0, "vertex {i} at radius {}", p.length());
+        }
+        // Welded: no two vertices at the same place, otherwise the index-based
+        // edge check below could pass on a mesh with cracks. (Sorting instead
+        // of hashing keeps the checks of large meshes fast.)
+        let mut bits: Vec<[u32; 3]> = mesh
+            .positions
+            .iter()
+            .map(|p| p.to_array().map(f32::to_bits))
+            .collect();
+        bits.sort_unstable();
+        if let Some(w) = bits.windows(2).find(|w| w[0] == w[1]) {
+            panic!("duplicate vertex {:?}", w[0].map(f32::from_bits));
+        }
+        // Each directed edge once, and its reverse once: every edge is shared
+        // by exactly two triangles that traverse it in opposite directions.
+        let mut directed = Vec::with_capacity(mesh.triangles.len() * 3);
+        let mut used = vec![false; mesh.positions.len()];
+        let mut volume6 = 0.0f64;
+        for (t, &[a, b, c]) in mesh.triangles.iter().enumerate() {
+            assert!(a != b && b != c && c != a, "triangle {t} repeats a vertex");
+            for (x, y) in [(a, b), (b, c), (c, a)] {
+                directed.push((x, y));
+                used[x as usize] = true;
+            }
+            let [pa, pb, pc] = [a, b, c].map(|i| mesh.positions[i as usize].as_dvec3());
+            let area = 0.5 * (pb - pa).cross(pc - pa).length();
+            assert!(area > 1e-9, "triangle {t} has area {area}");
+            volume6 += pa.dot(pb.cross(pc));
+        }
+        directed.sort_unstable();
+        if let Some(w) = directed.windows(2).find(|w| w[0] == w[1]) {
+            panic!("edge {:?} used twice in one direction", w[0]);
+        }
+        let mut reversed: Vec<(u32, u32)> = directed.iter().map(|&(x, y)| (y, x)).collect();
+        reversed.sort_unstable();
+        if let Some((e, _)) = directed.iter().zip(&reversed).find(|(e, r)| e != r) {
+            panic!("edge {e:?} or its reverse has no partner");
+        }
+        let volume = volume6 / 6.0;
+        assert!(volume > 0.0, "signed volume {volume}: faces point inward");
+        volume
+    }
+
+    #[test]
+    fn procedural_defaults_build_clean() {
+        for object in Procedural::defaults() {
+            let mesh = object.build().unwrap();
+            assert_eq!(
+                mesh.triangles.len() as u64,
+                object.triangle_count(),
+                "{}",
+                object.name()
+            );
+            check_closed_mesh(&mesh);
+            // Normalised to fill the unit sphere, not merely fit inside it.
+            let max = mesh
+                .positions
+                .iter()
+                .map(|p| p.length())
+                .fold(0.0, f32::max);
+            assert!(max > 0.9999, "{} reaches only {max}", object.name());
+        }
+    }
+
+    #[test]
+    fn procedural_triangle_counts() {
+        assert_eq!(sphere(0, 1).build().unwrap().triangles.len(), 20);
+        assert_eq!(sphere(3, 1).build().unwrap().triangles.len(), 1280);
+        assert_eq!(sphere(7, 1).triangle_count(), 327_680);
+        let mesh = sphere(4, 1).build().unwrap();
+        assert_eq!(mesh.positions.len(), 10 * 4usize.pow(4) + 2);
+        assert_eq!(
+            knot_with(2, 3, 0.5, 64, 12)
+                .build()
+                .unwrap()
+                .triangles
+                .len(),
+            2 * 64 * 12
+        );
+        for (level, triangles) in [
+            (0, 12),
+            (1, 2 * (40 + 32)),
+            (2, 2 * (800 + 256)),
+            (3, 36_096),
+        ] {
+            let sponge = Procedural::MengerSponge { level };
+            assert_eq!(
+                sponge.build().unwrap().triangles.len(),
+                triangles,
+                "level {level}"
+            );
+        }
+        assert_eq!(
+            Procedural::MengerSponge { level: 4 }.triangle_count(),
+            672_768
+        );
+    }
+
+    #[test]
+    fn procedural_menger_level_4_is_closed() {
+        let mesh = Procedural::MengerSponge { level: 4 }.build().unwrap();
+        assert_eq!(mesh.triangles.len(), 672_768);
+        let volume = check_closed_mesh(&mesh);
+        // Solid fraction (20/27)^4 of a cube whose half-diagonal is 1.
+        let cube = (2.0 / 3f64.sqrt()).powi(3);
+        let expected = cube * (20.0f64 / 27.0).powi(4);
+        assert!(
+            (volume - expected).abs() < 1e-4 * expected,
+            "{volume} vs {expected}"
+        );
+    }
+
+    #[test]
+    fn procedural_small_variants_are_closed() {
+        check_closed_mesh(&sphere(0, 3).build().unwrap());
+        check_closed_mesh(&sphere(5, 99).build().unwrap());
+        check_closed_mesh(
+            &Procedural::DisplacedSphere {
+                subdivisions: 4,
+                amplitude: 0.0,
+                frequency: 0.0,
+                seed: 0,
+            }
+            .build()
+            .unwrap(),
+        );
+        for (p, q, r) in [
+            (2, 3, 0.4),
+            (3, 2, 0.3),
+            (3, 5, 0.2),
+            (1, 1, 0.5),
+            (5, 2, 0.15),
+        ] {
+            check_closed_mesh(&knot_with(p, q, r, 512, 16).build().unwrap());
+        }
+        check_closed_mesh(&knot_with(2, 3, 0.5, 24, 3).build().unwrap());
+        check_closed_mesh(&knot_with(5, 2, 0.15, 40, 3).build().unwrap());
+        for level in 0..=2 {
+            check_closed_mesh(&Procedural::MengerSponge { level }.build().unwrap());
+        }
+    }
+
+    #[test]
+    fn procedural_displaced_sphere_has_deep_folds() {
+        let mesh = sphere(6, 1).build().unwrap();
+        let radii: Vec<f32> = mesh.positions.iter().map(|p| p.length()).collect();
+        let (lo, hi) = radii
+            .iter()
+            .fold((f32::MAX, 0.0f32), |(lo, hi), &r| (lo.min(r), hi.max(r)));
+        // Creases reach 1 - amplitude, lobes up to 1 + amplitude (before scaling).
+        assert!(lo / hi < 0.6, "radius range {lo}..{hi} is too shallow");
+        // Many concave edges, not a few dents: count edges whose opposite
+        // vertex lies outside the neighbouring triangle's plane.
+        let mut opposite = HashMap::new();
+        for &[a, b, c] in &mesh.triangles {
+            for (x, y, z) in [(a, b, c), (b, c, a), (c, a, b)] {
+                opposite.insert((x, y), z);
+            }
+        }
+        let p = |i: u32| mesh.positions[i as usize];
+        let mut concave = 0;
+        for (&(x, y), &z) in &opposite {
+            if x < y {
+                let w = opposite[&(y, x)];
+                let normal = (p(y) - p(x)).cross(p(z) - p(x));
+                if normal.dot(p(w) - p(x)) > 0.0 {
+                    concave += 1;
+                }
+            }
+        }
+        let fraction = concave as f64 / (opposite.len() / 2) as f64;
+        assert!(fraction > 0.2, "only {fraction} of the edges are concave");
+    }
+
+    #[test]
+    fn procedural_displacement_is_deterministic() {
+        let a = sphere(5, 7).build().unwrap();
+        let b = sphere(5, 7).build().unwrap();
+        assert_eq!(a, b);
+        let c = sphere(5, 8).build().unwrap();
+        assert_eq!(a.triangles, c.triangles);
+        assert_ne!(a.positions, c.positions);
+    }
+
+    #[test]
+    fn procedural_torus_knot_has_no_twist_seam() {
+        let (segments, sides) = (400usize, 12usize);
+        let mesh = knot_with(2, 3, 0.5, segments as u32, sides as u32)
+            .build()
+            .unwrap();
+        // The edge from ring i to ring i + 1 along one vertex column: a seam
+        // where the frame jumps would make the closing one much longer.
+        let lengths: Vec<f32> = (0..segments)
+            .map(|i| {
+                let next = (i + 1) % segments;
+                mesh.positions[i * sides].distance(mesh.positions[next * sides])
+            })
+            .collect();
+        let mut sorted = lengths.clone();
+        sorted.sort_by(f32::total_cmp);
+        let median = sorted[segments / 2];
+        let max = sorted[segments - 1];
+        assert!(max < 2.5 * median, "max {max} vs median {median}");
+        let seam = lengths[segments - 1];
+        let before = lengths[segments - 2];
+        assert!(
+            (seam - before).abs() < 0.2 * before,
+            "seam {seam} vs {before}"
+        );
+    }
+
+    #[test]
+    fn procedural_invalid_parameters_are_errors() {
+        let too_fine = sphere(10, 1).build();
+        assert!(
+            matches!(too_fine, Err(ProceduralError::TooManyTriangles { .. })),
+            "{too_fine:?}"
+        );
+        assert!(sphere(u32::MAX, 1).build().is_err());
+        for amplitude in [1.0, -0.1, f32::NAN] {
+            let object = Procedural::DisplacedSphere {
+                subdivisions: 2,
+                amplitude,
+                frequency: 1.0,
+                seed: 0,
+            };
+            assert!(matches!(
+                object.build(),
+                Err(ProceduralError::InvalidParameter { .. })
+            ));
+        }
+        for (p, q, r, segments, sides) in [
+            (2, 3, 0.5, 0, 16),
+            (2, 3, 0.5, 64, 0),
+            (2, 3, 0.5, 2, 16),
+            (2, 3, 0.5, 23, 16),
+            (0, 3, 0.5, 64, 16),
+            (2, 3, 0.0, 64, 16),
+            (2, 3, f32::INFINITY, 64, 16),
+            (2, 101, 0.1, 64, 16),
+        ] {
+            let result = knot_with(p, q, r, segments, sides).build();
+            assert!(
+                matches!(result, Err(ProceduralError::InvalidParameter { .. })),
+                "{result:?}"
+            );
+        }
+        assert!(matches!(
+            knot_with(2, 4, 0.1, 64, 16).build(),
+            Err(ProceduralError::NotAKnot { .. })
+        ));
+        assert!(matches!(
+            knot_with(2, 3, 0.5, 100_000, 1000).build(),
+            Err(ProceduralError::TooManyTriangles { .. })
+        ));
+        match knot_with(2, 3, 1.5, 64, 16).build() {
+            Err(ProceduralError::TubeSelfIntersection { limit, .. }) => {
+                assert!(limit > 0.5 && limit < 1.5, "limit {limit}");
+                assert!(knot_with(2, 3, 0.98 * limit, 64, 16).build().is_ok());
+                assert!(knot_with(2, 3, 1.02 * limit, 64, 16).build().is_err());
+            }
+            other => panic!("{other:?}"),
+        }
+        let deep = Procedural::MengerSponge { level: 5 }.build();
+        assert!(
+            matches!(deep, Err(ProceduralError::InvalidParameter { .. })),
+            "{deep:?}"
+        );
+        assert!(deep.unwrap_err().to_string().contains("level = 5"));
+    }
+
+    #[test]
+    fn procedural_names() {
+        assert_eq!(knot_with(2, 3, 0.5, 64, 8).name(), "torus-knot-2-3");
+        assert_eq!(
+            Procedural::MengerSponge { level: 3 }.name(),
+            "menger-sponge-3"
+        );
+        assert_eq!(sphere(7, 42).name(), "displaced-sphere-7-seed-42");
+    }
+
+    fn parse_obj(text: &str) -> TriMesh {
+        let mut mesh = TriMesh::default();
+        for line in text.lines() {
+            let mut words = line.split_whitespace();
+            match words.next() {
+                Some("v") => {
+                    let v: Vec<f32> = words.map(|w| w.parse().unwrap()).collect();
+                    assert_eq!(v.len(), 3, "{line}");
+                    mesh.positions.push(Vec3::new(v[0], v[1], v[2]));
+                }
+                Some("f") => {
+                    let f: Vec<u32> = words.map(|w| w.parse::<u32>().unwrap() - 1).collect();
+                    assert_eq!(f.len(), 3, "{line}");
+                    mesh.triangles.push([f[0], f[1], f[2]]);
+                }
+                Some(w) if w.starts_with('#') => {}
+                None => {}
+                Some(other) => panic!("unexpected OBJ line {other}"),
+            }
+        }
+        mesh
+    }
+
+    #[test]
+    fn procedural_write_obj_round_trip() {
+        let dir = std::env::temp_dir().join(format!("nppp-procedural-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for object in [
+            sphere(3, 5),
+            knot_with(3, 5, 0.2, 96, 10),
+            Procedural::MengerSponge { level: 1 },
+        ] {
+            let mesh = object.build().unwrap();
+            let path = dir.join(format!("{}.obj", object.name()));
+            write_obj(&mesh, &path).unwrap();
+            assert_eq!(
+                parse_obj(&std::fs::read_to_string(&path).unwrap()),
+                mesh,
+                "{}",
+                object.name()
+            );
+            // The scene loader reads OBJ through tobj; it must agree too.
+            let (models, _) = tobj::load_obj(&path, &tobj::LoadOptions::default()).unwrap();
+            assert_eq!(models.len(), 1);
+            assert_eq!(models[0].mesh.positions.len(), 3 * mesh.positions.len());
+            assert_eq!(models[0].mesh.indices.len(), 3 * mesh.triangles.len());
+        }
+        // Only the finished files remain: no temporaries left behind.
+        let names: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert!(
+            names
+                .iter()
+                .all(|n| n.ends_with(".obj") && !n.starts_with('.')),
+            "{names:?}"
+        );
+        assert!(write_obj(&TriMesh::default(), &dir.join("missing-dir").join("x.obj")).is_err());
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 3);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Build times of the defaults, for the record: `cargo test -p nppp-scene
+    /// procedural_timings -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn procedural_timings() {
+        let extra = [Procedural::MengerSponge { level: 4 }];
+        for object in Procedural::defaults().iter().chain(&extra) {
+            let start = std::time::Instant::now();
+            let mesh = object.build().unwrap();
+            println!(
+                "{}: {} triangles, {} vertices, {:.3} s",
+                object.name(),
+                mesh.triangles.len(),
+                mesh.positions.len(),
+                start.elapsed().as_secs_f64()
+            );
+        }
+    }
+}
