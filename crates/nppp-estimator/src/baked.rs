@@ -144,6 +144,9 @@ fn section_sizes(h: &FileHeader) -> Result<Vec<(String, usize)>, String> {
     Ok(v)
 }
 
+/// A parsed header, its section sizes, and where the sections start.
+type Layout = (FileHeader, Vec<(String, usize)>, usize);
+
 /// Reads little-endian values from a byte slice; running out is an error
 /// (the sizes were checked, but a bug here must not become a panic).
 struct Cursor<'a> {
@@ -353,7 +356,10 @@ impl BakedEstimator {
             return Err(EstimatorFileError::Magic { path: p() });
         }
         if n < PREFIX_LEN + 4 {
-            return Err(EstimatorFileError::Truncated { path: p(), what: format!("file is {n} bytes, the fixed prefix alone is {}", PREFIX_LEN + 4) });
+            return Err(EstimatorFileError::Truncated {
+                path: p(),
+                what: format!("file is {n} bytes, the fixed prefix alone is {}", PREFIX_LEN + 4),
+            });
         }
         let version = read_u32(bytes, 8).unwrap_or(0);
         if version != ESTIMATOR_VERSION {
@@ -367,7 +373,9 @@ impl BakedEstimator {
             // header explains the damage, "corrupted" otherwise.
             return Err(match layout {
                 Err(e @ EstimatorFileError::Truncated { .. }) => e,
-                Ok((_, sections, start)) => Self::truncation(&sections, start, n, path).unwrap_or(EstimatorFileError::Checksum { path: p() }),
+                Ok((_, sections, start)) => {
+                    Self::truncation(&sections, start, n, path).unwrap_or(EstimatorFileError::Checksum { path: p() })
+                }
                 Err(_) => EstimatorFileError::Checksum { path: p() },
             });
         }
@@ -379,14 +387,15 @@ impl BakedEstimator {
         if total != n {
             return Err(EstimatorFileError::Invalid { path: p(), what: format!("{} bytes after the last section", n - total) });
         }
-        let est = Self::decode(bytes, start, header).ok_or_else(|| EstimatorFileError::Truncated { path: p(), what: "sections end early".into() })?;
+        let est = Self::decode(bytes, start, header)
+            .ok_or_else(|| EstimatorFileError::Truncated { path: p(), what: "sections end early".into() })?;
         est.check().map_err(|what| EstimatorFileError::Invalid { path: p(), what })?;
         Ok(est)
     }
 
     /// Parses the header and derives the section sizes without allocating
     /// anything proportional to them.
-    fn layout(bytes: &[u8], path: &Path) -> Result<(FileHeader, Vec<(String, usize)>, usize), EstimatorFileError> {
+    fn layout(bytes: &[u8], path: &Path) -> Result<Layout, EstimatorFileError> {
         let n = bytes.len();
         let hlen = read_u32(bytes, PREFIX_LEN).unwrap_or(0) as usize;
         if hlen > MAX_HEADER_LEN {
@@ -394,7 +403,10 @@ impl BakedEstimator {
         }
         let start = PREFIX_LEN + 4 + hlen;
         if start > n {
-            return Err(EstimatorFileError::Truncated { path: path.into(), what: format!("header says {hlen} header bytes, {} present", n - PREFIX_LEN - 4) });
+            return Err(EstimatorFileError::Truncated {
+                path: path.into(),
+                what: format!("header says {hlen} header bytes, {} present", n - PREFIX_LEN - 4),
+            });
         }
         let header: FileHeader = serde_json::from_slice(&bytes[PREFIX_LEN + 4..start])
             .map_err(|e| EstimatorFileError::Header { path: path.into(), what: e.to_string() })?;
@@ -409,7 +421,10 @@ impl BakedEstimator {
             let end = at.checked_add(*len);
             if end.is_none_or(|e| e > n) {
                 let present = n.saturating_sub(at);
-                return Some(EstimatorFileError::Truncated { path: path.into(), what: format!("header says {len} {name} bytes, {present} present") });
+                return Some(EstimatorFileError::Truncated {
+                    path: path.into(),
+                    what: format!("header says {len} {name} bytes, {present} present"),
+                });
             }
             at = end.unwrap_or(usize::MAX);
         }
@@ -461,11 +476,8 @@ impl BakedEstimator {
         let _ = writeln!(s, "  material:  {} (content hash {:016x})", m.material_name, m.material_hash);
         let c = m.sphere.center;
         let _ = writeln!(s, "  sphere:    centre ({}, {}, {}), radius {}", c.x, c.y, c.z, m.sphere.radius);
-        let _ = writeln!(
-            s,
-            "  latent:    {} dims, noise {} dims, internal bounces <= {}",
-            m.latent_dim, m.noise_dim, m.max_internal_bounces
-        );
+        let _ =
+            writeln!(s, "  latent:    {} dims, noise {} dims, internal bounces <= {}", m.latent_dim, m.noise_dim, m.max_internal_bounces);
         for (name, g, what) in [("latent grid", &self.latent, "latents"), ("mask grid", &self.mask, "logits, hit if > 0")] {
             let _ = writeln!(
                 s,
@@ -525,7 +537,12 @@ pub(crate) mod tests {
             seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
             (seed >> 8) as f32 / (1 << 24) as f32 - 0.5
         };
-        let mut dense = |i: usize, o: usize| Dense { inputs: i, outputs: o, weight: (0..i * o).map(|_| rnd()).collect(), bias: (0..o).map(|_| rnd()).collect() };
+        let mut dense = |i: usize, o: usize| Dense {
+            inputs: i,
+            outputs: o,
+            weight: (0..i * o).map(|_| rnd()).collect(),
+            bias: (0..o).map(|_| rnd()).collect(),
+        };
         let inputs = (latent_dim + noise_dim) as usize;
         let decoder = Mlp { layers: vec![dense(inputs, width), dense(width, width), dense(width, EXIT_FEATURES)] };
         let meta = EstimatorMeta {
@@ -565,7 +582,10 @@ pub(crate) mod tests {
             assert_eq!(back, est);
             assert_eq!(back.to_bytes(), bytes);
             // No temp file left behind.
-            assert_eq!(std::fs::read_dir(&dir).unwrap().filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().ends_with(".tmp")).count(), 0);
+            assert_eq!(
+                std::fs::read_dir(&dir).unwrap().filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().ends_with(".tmp")).count(),
+                0
+            );
         }
         let _ = std::fs::remove_dir_all(&dir);
     }
@@ -574,7 +594,17 @@ pub(crate) mod tests {
     fn describe_mentions_everything() {
         let est = tiny_estimator(4, 2, 8);
         let d = est.describe();
-        for needle in ["dragon.obj", "deadbeef01234567", "glass", "radius 1.75", "3^4 nodes x 4 ch x 8 bit", "2^4 nodes x 1 ch", "6 -> 8 -> 8 -> 13", "thesis formula", "test estimator"] {
+        for needle in [
+            "dragon.obj",
+            "deadbeef01234567",
+            "glass",
+            "radius 1.75",
+            "3^4 nodes x 4 ch x 8 bit",
+            "2^4 nodes x 1 ch",
+            "6 -> 8 -> 8 -> 13",
+            "thesis formula",
+            "test estimator",
+        ] {
             assert!(d.contains(needle), "missing {needle:?} in\n{d}");
         }
     }
@@ -586,7 +616,9 @@ pub(crate) mod tests {
         let lat = est.latent.to_f32();
         let mask = est.mask.to_f32();
         let t = est.transform.clone();
-        let ok = |meta: EstimatorMeta, dec: Mlp, t: ExitTransform, bits: u8| BakedEstimator::from_f32_grids(meta, 3, &lat, 2, &mask, bits, dec, t);
+        let ok = |meta: EstimatorMeta, dec: Mlp, t: ExitTransform, bits: u8| {
+            BakedEstimator::from_f32_grids(meta, 3, &lat, 2, &mask, bits, dec, t)
+        };
         assert!(ok(m.clone(), est.decoder.clone(), t.clone(), 8).is_ok());
         assert!(ok(m.clone(), est.decoder.clone(), t.clone(), 3).is_err());
         let mut m2 = m.clone();
@@ -672,7 +704,8 @@ pub(crate) mod tests {
     #[test]
     fn absurd_sizes_never_allocate() {
         let good = tiny_estimator(4, 2, 8).to_bytes();
-        let cases: Vec<(Box<dyn Fn(&mut serde_json::Value)>, &str)> = vec![
+        type Edit = Box<dyn Fn(&mut serde_json::Value)>;
+        let cases: Vec<(Edit, &str)> = vec![
             (Box::new(|v| v["latent"]["res"] = (1u64 << 31).into()), "absurd"),
             (Box::new(|v| v["latent"]["res"] = 60000.into()), "absurd"),
             (Box::new(|v| v["latent"]["res"] = 1000.into()), "truncated: header says 4000000000000 latent bytes"),

@@ -128,7 +128,7 @@ impl Default for WriterOptions {
 /// saturate to the largest finite half (a training target must stay finite),
 /// negative and NaN become 0 (the writer rejects those before this point).
 pub fn f32_to_f16(x: f32) -> u16 {
-    if !(x > 0.0) {
+    if x.is_nan() || x <= 0.0 {
         return 0;
     }
     if x >= 65504.0 {
@@ -300,7 +300,9 @@ impl Columns {
 
     fn payload(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.bytes());
-        for c in [&self.pairs, &self.hit_bits, &self.positions, &self.directions, &self.flags, &self.bounces, &self.throughput, &self.radiance] {
+        for c in
+            [&self.pairs, &self.hit_bits, &self.positions, &self.directions, &self.flags, &self.bounces, &self.throughput, &self.radiance]
+        {
             out.extend_from_slice(c);
         }
         out
@@ -337,7 +339,8 @@ fn decode_payload(p: &[u8], rays: u32, hits: u32, k: u32, bw: usize) -> Result<V
     }
     let u16_at = |s: &[u8], i: usize| u16::from_le_bytes([s[2 * i], s[2 * i + 1]]);
     let f32_at = |s: &[u8], i: usize| f32::from_le_bytes([s[4 * i], s[4 * i + 1], s[4 * i + 2], s[4 * i + 3]]);
-    let color = |s: &[u8], i: usize| Vec3::new(f16_to_f32(u16_at(s, 3 * i)), f16_to_f32(u16_at(s, 3 * i + 1)), f16_to_f32(u16_at(s, 3 * i + 2)));
+    let color =
+        |s: &[u8], i: usize| Vec3::new(f16_to_f32(u16_at(s, 3 * i)), f16_to_f32(u16_at(s, 3 * i + 1)), f16_to_f32(u16_at(s, 3 * i + 2)));
     let mut out = Vec::with_capacity(rays);
     let (mut e, mut ti, mut li) = (0usize, 0usize, 0usize);
     for r in 0..rays {
@@ -671,7 +674,10 @@ impl DatasetReader {
         }
         let data_start = 16 + hlen as u64 + 4;
         if data_start + TRAILER_LEN as u64 > len {
-            return Err(DatasetError::Header { path: p(), what: format!("truncated: header says {hlen} header bytes, file is {len} bytes") });
+            return Err(DatasetError::Header {
+                path: p(),
+                what: format!("truncated: header says {hlen} header bytes, file is {len} bytes"),
+            });
         }
         let mut hbuf = vec![0u8; hlen + 4];
         file.read_exact(&mut hbuf).map_err(io)?;
@@ -784,7 +790,10 @@ impl DatasetReader {
 
     /// Chunk `i`, read and checked on its own (random access).
     pub fn read_chunk(&mut self, i: usize) -> Result<Vec<RayRecord>, DatasetError> {
-        let e = *self.index.get(i).ok_or_else(|| DatasetError::Index { path: self.path.clone(), what: format!("no chunk {i} (file has {})", self.index.len()) })?;
+        let e = *self.index.get(i).ok_or_else(|| DatasetError::Index {
+            path: self.path.clone(),
+            what: format!("no chunk {i} (file has {})", self.index.len()),
+        })?;
         let err = |what: String| DatasetError::Chunk { path: self.path.clone(), chunk: i as u64, offset: e.offset, what };
         let end = self.index.get(i + 1).map_or(self.index_offset, |n| n.offset);
         let span = (end - e.offset) as usize;
@@ -794,10 +803,19 @@ impl DatasetReader {
         if head[..4] != CHUNK_MAGIC {
             return Err(err("no chunk marker (file corrupted)".into()));
         }
-        let (rays, hits, enc, stored_len, raw_len, crc) =
-            (le_u32(&head, 4), le_u32(&head, 8), le_u32(&head, 12), le_u32(&head, 16) as usize, le_u32(&head, 20) as usize, le_u32(&head, 24));
+        let (rays, hits, enc, stored_len, raw_len, crc) = (
+            le_u32(&head, 4),
+            le_u32(&head, 8),
+            le_u32(&head, 12),
+            le_u32(&head, 16) as usize,
+            le_u32(&head, 20) as usize,
+            le_u32(&head, 24),
+        );
         if stored_len != span - CHUNK_HEADER_LEN {
-            return Err(err(format!("chunk header says {stored_len} payload bytes, {} present before the next chunk", span - CHUNK_HEADER_LEN)));
+            return Err(err(format!(
+                "chunk header says {stored_len} payload bytes, {} present before the next chunk",
+                span - CHUNK_HEADER_LEN
+            )));
         }
         if raw_len > MAX_CHUNK_RAW {
             return Err(err(format!("chunk claims {raw_len} uncompressed bytes (limit {MAX_CHUNK_RAW})")));
@@ -817,7 +835,8 @@ impl DatasetReader {
         let raw = match enc {
             ENC_RAW => stored,
             ENC_DEFLATE => {
-                let raw = miniz_oxide::inflate::decompress_to_vec_with_limit(&stored, raw_len).map_err(|e| err(format!("cannot inflate: {e}")))?;
+                let raw = miniz_oxide::inflate::decompress_to_vec_with_limit(&stored, raw_len)
+                    .map_err(|e| err(format!("cannot inflate: {e}")))?;
                 if raw.len() != raw_len {
                     return Err(err(format!("inflates to {} bytes, header says {raw_len}", raw.len())));
                 }
@@ -892,7 +911,8 @@ mod tests {
                     b += 1;
                 }
                 let absorbed = rng.uniform() < 0.1;
-                let throughput = if absorbed { Vec3::ZERO } else { Vec3::new(0.8f32.powi(b as i32), 0.6f32.powi(b as i32), 0.4f32.powi(b as i32)) };
+                let throughput =
+                    if absorbed { Vec3::ZERO } else { Vec3::new(0.8f32.powi(b as i32), 0.6f32.powi(b as i32), 0.4f32.powi(b as i32)) };
                 let radiance = if rng.uniform() < 0.02 { Vec3::splat(rng.uniform() * 5.0) } else { Vec3::ZERO };
                 Exit { position, direction, throughput, radiance, bounces: b }
             })

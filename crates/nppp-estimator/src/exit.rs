@@ -174,11 +174,12 @@ fn safe_normalize(v: Vec3) -> Option<Vec3> {
         return None;
     }
     let m = v.abs().max_element();
-    if !(m > 0.0) {
+    // `v` is finite here, so these comparisons see no NaN.
+    if m <= 0.0 {
         return None;
     }
     let s = v / m;
-    if !(m * s.length() > 1e-6) {
+    if m * s.length() <= 1e-6 {
         return None;
     }
     Some(s.normalize())
@@ -192,7 +193,7 @@ mod tests {
     proptest! {
         #[test]
         fn encode_decode_round_trips(
-            th in 0.0f32..1.0, ph in 0.0f32..6.28, t in 0.0f32..2.0, r in 0.0f32..100.0, b in 0u32..50
+            th in 0.0f32..1.0, ph in 0.0f32..std::f32::consts::TAU, t in 0.0f32..2.0, r in 0.0f32..100.0, b in 0u32..50
         ) {
             let p = Vec3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos());
             let d = (p + Vec3::new(0.1, 0.2, 0.3)).normalize();

@@ -266,7 +266,7 @@ mod tests {
             .map(|k| {
                 let [u1, v1, u2, v2] = node_coords(res, k / channels as usize);
                 let c = (k % channels as usize) as f32;
-                (u1 * 3.0 + c).sin() + (v1 * 6.283).cos() * u2 - v2 * (c + 1.0) * 0.3
+                (u1 * 3.0 + c).sin() + (v1 * std::f32::consts::TAU).cos() * u2 - v2 * (c + 1.0) * 0.3
             })
             .collect();
         let g = QuantizedGrid::from_f32(res, channels, &values, bits).unwrap();
@@ -350,7 +350,8 @@ mod tests {
     fn hostile_inputs_do_not_panic() {
         for bits in [8u8, 4, 2] {
             let (_, g) = test_grid(3, 2, bits);
-            let (lo, hi) = (0..g.node_count() * 2).map(|k| g.node_value(k / 2, k % 2)).fold((f32::MAX, f32::MIN), |(l, h), x| (l.min(x), h.max(x)));
+            let (lo, hi) =
+                (0..g.node_count() * 2).map(|k| g.node_value(k / 2, k % 2)).fold((f32::MAX, f32::MIN), |(l, h), x| (l.min(x), h.max(x)));
             let bad = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1e-30, -1e30, 1e30, 1.0 + 1e-7, -0.0, 7.5, -7.5, f32::MIN_POSITIVE];
             let mut out = [0.0f32; 2];
             for &x in &bad {
@@ -394,7 +395,7 @@ mod tests {
             let uc = |u: f32| { let t = u.clamp(0.0, 1.0) * 2.0; let i = (t as usize).min(1); [i, i + 1] };
             let vc = |v: f32| { let t = (v - v.floor()) * 3.0; let j = (t.floor() as usize) % 3; [j, (j + 1) % 3] };
             let (i1, j1, i2, j2) = (uc(p[0]), vc(p[1]), uc(p[2]), vc(p[3]));
-            for c in 0..2 {
+            for (c, &o) in out.iter().enumerate() {
                 let mut lo = f32::MAX;
                 let mut hi = f32::MIN;
                 for a in i1 { for b in j1 { for cc in i2 { for d in j2 {
@@ -403,7 +404,7 @@ mod tests {
                     hi = hi.max(x);
                 }}}}
                 let eps = 1e-5 * (1.0 + lo.abs().max(hi.abs()));
-                prop_assert!(out[c] >= lo - eps && out[c] <= hi + eps, "channel {} value {} outside [{}, {}]", c, out[c], lo, hi);
+                prop_assert!(o >= lo - eps && o <= hi + eps, "channel {} value {} outside [{}, {}]", c, o, lo, hi);
             }
         }
     }

@@ -68,13 +68,16 @@ fn put_code(packed: &mut [u8], k: usize, bits: u8, code: u8) {
     }
 }
 
+/// `(scale, offset, packed codes)` of a quantized array.
+pub type Quantized = (Vec<f32>, Vec<f32>, Vec<u8>);
+
 /// Quantizes `values` (items of `channels` values each) to `bits` bits with a
 /// per-channel min/max affine map. Returns `(scale, offset, packed)`.
 ///
 /// A channel whose values are all equal gets scale 0 and decodes exactly to
 /// its offset. Non-finite values are rejected: a NaN in a latent grid would
 /// silently poison every lookup that touches its node.
-pub fn quantize(values: &[f32], channels: usize, bits: u8) -> Result<(Vec<f32>, Vec<f32>, Vec<u8>), QuantError> {
+pub fn quantize(values: &[f32], channels: usize, bits: u8) -> Result<Quantized, QuantError> {
     check_bits(bits)?;
     if channels == 0 {
         return Err(QuantError::NoChannels);

@@ -117,9 +117,22 @@ impl EstimatorSampler {
     }
 
     /// [`Self::sample_batch`] without even the per-batch scratch allocation.
-    pub fn sample_batch_with(&self, pairs: &[SpherePair], r: &[f32], out: &mut [Exit], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) {
+    pub fn sample_batch_with(
+        &self,
+        pairs: &[SpherePair],
+        r: &[f32],
+        out: &mut [Exit],
+        scratch: &mut SamplerScratch,
+        repairs: &mut DecodeRepairs,
+    ) {
         assert!(out.len() >= pairs.len(), "sample_batch: {} outputs for {} pairs", out.len(), pairs.len());
-        assert!(r.len() >= pairs.len() * self.noise_dim, "sample_batch: {} normals for {} pairs x {}", r.len(), pairs.len(), self.noise_dim);
+        assert!(
+            r.len() >= pairs.len() * self.noise_dim,
+            "sample_batch: {} normals for {} pairs x {}",
+            r.len(),
+            pairs.len(),
+            self.noise_dim
+        );
         let nd = self.noise_dim;
         for (i, (pair, o)) in pairs.iter().zip(out.iter_mut()).enumerate() {
             *o = self.sample(pair, &r[i * nd..(i + 1) * nd], scratch, repairs);

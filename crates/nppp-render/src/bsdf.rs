@@ -216,3 +216,60 @@ pub fn ggx_sample_visible(wo: Vec3, alpha: f32, u: Vec2) -> Vec3 {
     let nh = p1 * t1 + p2 * t2 + (1.0 - p1 * p1 - p2 * p2).max(0.0).sqrt() * vh;
     Vec3::new(alpha * nh.x, alpha * nh.y, nh.z.max(1e-6)).normalize()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nppp_geom::SampleRng;
+    use nppp_geom::sampling::uniform_sphere;
+
+    fn dir(theta_deg: f32) -> Vec3 {
+        let t = theta_deg.to_radians();
+        Vec3::new(t.sin(), 0.0, t.cos())
+    }
+
+    /// Directional albedo two ways: the mean sampled weight, and eval()
+    /// integrated with uniform sphere sampling. They agree only if sample()
+    /// and eval() describe the same BSDF.
+    fn albedo_two_ways(b: &Bsdf, wo: Vec3, n: usize) -> (f64, f64, f64) {
+        let mut rng = SampleRng::from_seed(17);
+        let mut by_sampling = 0.0f64;
+        let mut by_eval = 0.0f64;
+        let mut pdf_integral = 0.0f64;
+        for _ in 0..n {
+            if let Some(s) = b.sample(wo, rng.uniform(), rng.uniform2()) {
+                by_sampling += s.weight.x as f64;
+            }
+            let wi = uniform_sphere(rng.uniform2());
+            let (f, pdf) = b.eval(wo, wi);
+            by_eval += f.x as f64 * 4.0 * std::f64::consts::PI;
+            pdf_integral += pdf as f64 * 4.0 * std::f64::consts::PI;
+        }
+        (by_sampling / n as f64, by_eval / n as f64, pdf_integral / n as f64)
+    }
+
+    #[test]
+    fn sample_and_eval_agree() {
+        for b in [
+            Bsdf::Diffuse { albedo: Vec3::splat(0.7) },
+            Bsdf::Conductor { reflectance: Vec3::ONE, alpha: 0.5 },
+            Bsdf::Conductor { reflectance: Vec3::ONE, alpha: 0.2 },
+            Bsdf::Conductor { reflectance: Vec3::ONE, alpha: 1.0 },
+        ] {
+            for th in [0.0, 30.0, 60.0, 80.0] {
+                let (s, e, p) = albedo_two_ways(&b, dir(th), 400_000);
+                assert!((s - e).abs() < 0.02 * s.max(0.1), "{b:?} theta {th}: sampled {s} vs eval {e}");
+                assert!(p <= 1.01 && p > 0.5, "{b:?} theta {th}: pdf integrates to {p}");
+            }
+        }
+    }
+
+    #[test]
+    fn dielectric_fresnel_limits() {
+        assert!((fresnel_dielectric(1.0, 1.5) - 0.04).abs() < 1e-4);
+        assert_eq!(fresnel_dielectric(0.0, 1.5), 1.0);
+        // Total internal reflection from inside past the critical angle.
+        assert_eq!(fresnel_dielectric(-0.3, 1.5), 1.0);
+        assert!(fresnel_dielectric(1.0, 1.0) < 1e-7);
+    }
+}

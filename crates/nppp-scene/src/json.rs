@@ -35,6 +35,9 @@ impl fmt::Display for Num {
         match self {
             Num::U(u) => write!(f, "{u}"),
             Num::I(i) => write!(f, "{i}"),
+            // Scientific notation for the very large or small, so `1e39`
+            // is not echoed back as forty digits.
+            Num::F(x) if x.abs() >= 1e16 || (x.abs() < 1e-6 && *x != 0.0) => write!(f, "{x:e}"),
             Num::F(x) => write!(f, "{x}"),
         }
     }

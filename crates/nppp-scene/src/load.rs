@@ -112,7 +112,12 @@ impl Cx<'_> {
     fn invalid(&self, key: &str, message: String) -> SceneError {
         SceneError::Invalid {
             file: self.file.to_path_buf(),
-            key: key.to_string(),
+            // Only the document itself has the empty path.
+            key: if key.is_empty() {
+                "(top level)".to_string()
+            } else {
+                key.to_string()
+            },
             message,
         }
     }
@@ -567,13 +572,12 @@ impl Cx<'_> {
 
     fn mesh(&self, v: &Json, path: &str) -> Res<Mesh> {
         let f = self.object(v, path, MESH_KEYS)?;
-        let sources: Vec<&str> = MESH_SOURCES
+        let sources: Vec<(&str, &Json, String)> = MESH_SOURCES
             .iter()
-            .copied()
-            .filter(|s| f.get(s).is_some())
+            .filter_map(|&s| f.get(s).map(|(v, p)| (s, v, p)))
             .collect();
-        let source = match sources.as_slice() {
-            [one] => *one,
+        let (source, sv, sp) = match sources.as_slice() {
+            [one] => one,
             [] => {
                 return Err(self.invalid(
                     path,
@@ -584,37 +588,34 @@ impl Cx<'_> {
                 ));
             }
             many => {
+                let names: Vec<&str> = many.iter().map(|(s, _, _)| *s).collect();
                 return Err(self.invalid(
                     path,
                     format!(
                         "a mesh has exactly one source, found {}",
-                        many.join(" and ")
+                        names.join(" and ")
                     ),
                 ));
             }
         };
         let smooth = match f.get("smooth") {
-            Some((sv, sp)) => {
-                if source != "obj" {
+            Some((smv, smp)) => {
+                if *source != "obj" {
                     return Err(self.invalid(
-                        &sp,
+                        &smp,
                         format!("\"smooth\" applies only to obj meshes (this one is a {source}): the built-in shapes are flat shaded"),
                     ));
                 }
-                self.boolean(sv, &sp)?
+                self.boolean(smv, &smp)?
             }
             None => false,
         };
-        let Some((sv, sp)) = f.get(source) else {
-            // `source` was taken from the keys present.
-            return Err(self.invalid(path, "internal error: mesh source vanished".into()));
-        };
-        match source {
-            "quad" => self.quad(sv, &sp),
-            "box" => self.box_source(sv, &sp),
-            "icosphere" => self.icosphere(sv, &sp),
-            "obj" => self.obj(sv, &sp, smooth),
-            _ => self.procedural(sv, &sp),
+        match *source {
+            "quad" => self.quad(sv, sp),
+            "box" => self.box_source(sv, sp),
+            "icosphere" => self.icosphere(sv, sp),
+            "obj" => self.obj(sv, sp, smooth),
+            _ => self.procedural(sv, sp),
         }
     }
 
@@ -728,8 +729,19 @@ impl Cx<'_> {
             Some((_, t)) => self.string(t, &type_path)?,
             None => return Err(self.invalid(&type_path, "required key is missing".into())),
         };
-        // Missing parameters take the project's standard objects' values.
-        let [ds, tk, ms] = Procedural::defaults();
+        // Missing parameters take the values of the project's standard
+        // object of that kind, so `{"type": "torus_knot"}` is the usual knot.
+        let Some(standard) = Procedural::defaults()
+            .into_iter()
+            .find(|p| procedural_type(p) == ty)
+        else {
+            return Err(self.invalid(
+                &type_path,
+                format!(
+                    "unknown procedural type \"{ty}\" (known: displaced_sphere, torus_knot, menger_sponge)"
+                ),
+            ));
+        };
         let u32_param = |f: &Fields, key: &str, default: u32| -> Res<u32> {
             match f.get(key) {
                 Some((v, p)) => self.u32_in(v, &p, 0, u32::MAX, ""),
@@ -742,18 +754,13 @@ impl Cx<'_> {
                 None => Ok(default),
             }
         };
-        let proc = match (ty, ds, tk, ms) {
-            (
-                "displaced_sphere",
-                Procedural::DisplacedSphere {
-                    subdivisions,
-                    amplitude,
-                    frequency,
-                    seed,
-                },
-                _,
-                _,
-            ) => {
+        let proc = match standard {
+            Procedural::DisplacedSphere {
+                subdivisions,
+                amplitude,
+                frequency,
+                seed,
+            } => {
                 let f = self.object(
                     v,
                     path,
@@ -769,18 +776,13 @@ impl Cx<'_> {
                     },
                 }
             }
-            (
-                "torus_knot",
-                _,
-                Procedural::TorusKnot {
-                    p,
-                    q,
-                    tube_radius,
-                    segments,
-                    sides,
-                },
-                _,
-            ) => {
+            Procedural::TorusKnot {
+                p,
+                q,
+                tube_radius,
+                segments,
+                sides,
+            } => {
                 let f = self.object(
                     v,
                     path,
@@ -794,17 +796,11 @@ impl Cx<'_> {
                     sides: u32_param(&f, "sides", sides)?,
                 }
             }
-            ("menger_sponge", _, _, Procedural::MengerSponge { level }) => {
+            Procedural::MengerSponge { level } => {
                 let f = self.object(v, path, &["type", "level"])?;
                 Procedural::MengerSponge {
                     level: u32_param(&f, "level", level)?,
                 }
-            }
-            _ => {
-                return Err(self.invalid(
-                    &type_path,
-                    format!("unknown procedural type \"{ty}\" (known: displaced_sphere, torus_knot, menger_sponge)"),
-                ));
             }
         };
         let mesh = proc.build().map_err(|e| {
@@ -824,5 +820,14 @@ impl Cx<'_> {
             triangles: mesh.triangles,
             shading_normals: None,
         })
+    }
+}
+
+/// The scene-file spelling of a procedural object's kind.
+fn procedural_type(p: &Procedural) -> &'static str {
+    match p {
+        Procedural::DisplacedSphere { .. } => "displaced_sphere",
+        Procedural::TorusKnot { .. } => "torus_knot",
+        Procedural::MengerSponge { .. } => "menger_sponge",
     }
 }

@@ -41,8 +41,9 @@ pub struct TriMesh {
 pub enum Procedural {
     /// A unit icosphere pushed in and out along its normal by seeded noise
     /// whose zero set becomes a network of deep V-shaped creases between
-    /// overlapping lobes (a cabbage-rose look): narrow concave folds make light bounce many
-    /// times before escaping, as in the dragon's scales and coils.
+    /// overlapping lobes (a cabbage-rose look): narrow concave folds make
+    /// light bounce many times before escaping, as in the dragon's scales
+    /// and coils.
     /// `subdivisions` follows the scene format's icosphere (20 * 4^n
     /// triangles), `amplitude` in [0, 1) is the relative depth of the
     /// displacement, `frequency` the angular frequency of the lowest noise

@@ -62,10 +62,10 @@ fn truncated_and_empty_json_are_errors() {
 fn top_level_must_be_an_object() {
     let err = parse_scene("[1, 2, 3]", Path::new(FILE)).unwrap_err();
     assert!(matches!(err, SceneError::Invalid { .. }), "{err}");
-    assert!(
-        err.to_string()
-            .contains("expected an object, found an array"),
-        "{err}"
+    assert_eq!(err.key_path(), Some("(top level)"));
+    assert_eq!(
+        err.to_string(),
+        format!("{FILE}: (top level): expected an object, found an array")
     );
 }
 

@@ -94,7 +94,10 @@ pub fn load_with_obj(
     v["instances"] = json!([{"mesh": "m", "material": "white"}]);
     let scene_path = dir.join("scene.json");
     std::fs::write(&scene_path, v.to_string()).expect("write scene");
-    (nppp_scene::load_scene(&scene_path), dir)
+    let result = nppp_scene::load_scene(&scene_path);
+    // The scene is fully loaded; only the path is still needed, for messages.
+    let _ = std::fs::remove_dir_all(&dir);
+    (result, dir)
 }
 
 pub fn obj_mesh(obj: &str, smooth: bool) -> Result<nppp_scene::Mesh, SceneError> {
