@@ -1,6 +1,7 @@
 //! `nppp`: the command-line tool. Each subcommand is one stage of the
 //! pipeline (gen, train, bake, render, bench) or a utility (info, mesh).
 
+mod gen_cmd;
 mod render_cmd;
 
 use anyhow::Result;
@@ -20,6 +21,8 @@ struct Cli {
 enum Command {
     /// Render a scene to an EXR (and optionally a PNG preview).
     Render(render_cmd::RenderArgs),
+    /// Generate estimator training data: path-trace one object alone.
+    Gen(gen_cmd::GenArgs),
 }
 
 fn main() {
@@ -37,5 +40,6 @@ fn run(cli: Cli) -> Result<()> {
     }
     match cli.command {
         Command::Render(a) => render_cmd::run(&a),
+        Command::Gen(a) => gen_cmd::run(&a),
     }
 }

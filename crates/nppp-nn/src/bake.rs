@@ -230,6 +230,9 @@ pub struct RawGrids {
 
 /// Evaluates the encoder and the mask network at every node.
 pub fn compute_grids(loaded: &LoadedModel, latent_res: u32, mask_res: u32, quiet: bool) -> Result<RawGrids> {
+    // Both sizes are checked before the (long) encoder pass.
+    check_res("latent-grid", latent_res, loaded.model_config.latent_dim)?;
+    check_res("mask-grid", mask_res, 1)?;
     let est = BurnEstimator::new(
         &loaded.model,
         loaded.meta.transform.clone(),

@@ -174,9 +174,7 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
     if path.depth >= s.max_bounces {
         return Next::Terminate;
     }
-    // Two-sided materials see the surface from wo's side; glass keeps front = outside.
-    let (ng_side, ns_side) = if bsdf.two_sided() && wo_world.dot(ng) < 0.0 { (-ng, -ns) } else { (ng, ns) };
-    let frame = Frame::from_normal(ns_side);
+    let (frame, ng_side) = shading_frame(&bsdf, ng, ns, wo_world);
     let wo = frame.to_local(wo_world);
     let eps = scene.offset_at(p, hit.instance);
 
@@ -206,16 +204,8 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
     let u_lobe = path.rng.uniform();
     let u_dir = path.rng.uniform2();
     let u_rr = path.rng.uniform();
-    let Some(bs) = bsdf.sample(wo, u_lobe, u_dir) else { return Next::Terminate };
-    let wi = frame.to_world(bs.wi);
-    // The sampled direction must agree with the geometric surface: reflection
-    // stays on wo's side, transmission crosses (guards against shading normals).
-    let reflect_side = wi.dot(ng) * wo_world.dot(ng) > 0.0;
-    let transmits = matches!(bsdf, Bsdf::Dielectric { .. }) && bs.wi.z * wo.z < 0.0;
-    if reflect_side == transmits {
-        return Next::Terminate;
-    }
-    if transmits && let Bsdf::Dielectric { .. } = bsdf {
+    let Some((wi, bs)) = sample_scatter(&bsdf, &frame, ng, wo_world, u_lobe, u_dir) else { return Next::Terminate };
+    if bs.wi.z * wo.z < 0.0 {
         path.eta_scale /= bs.weight.x;
     }
     path.beta *= bs.weight;
@@ -239,6 +229,39 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
         return Next::Terminate;
     }
     Next::Continue
+}
+
+/// The shading frame at a vertex and the geometric normal on the side the
+/// path arrived from. Two-sided materials see the surface from wo's side;
+/// glass keeps front = outside.
+#[inline]
+pub fn shading_frame(bsdf: &Bsdf, ng: Vec3, ns: Vec3, wo_world: Vec3) -> (Frame, Vec3) {
+    let (ng_side, ns_side) = if bsdf.two_sided() && wo_world.dot(ng) < 0.0 { (-ng, -ns) } else { (ng, ns) };
+    (Frame::from_normal(ns_side), ng_side)
+}
+
+/// Samples the continuation of a path at a surface: the one BSDF-sampling
+/// routine that the renderer, the data generator and the oracle estimator
+/// share. Returns the world direction and the local sample, or `None` when
+/// the path ends (absorbed, or the direction disagrees with the geometric
+/// surface: reflection must stay on wo's side, transmission must cross).
+#[inline]
+pub fn sample_scatter(bsdf: &Bsdf, frame: &Frame, ng: Vec3, wo_world: Vec3, u_lobe: f32, u_dir: Vec2) -> Option<(Vec3, crate::bsdf::BsdfSample)> {
+    let wo = frame.to_local(wo_world);
+    let bs = bsdf.sample(wo, u_lobe, u_dir)?;
+    let wi = frame.to_world(bs.wi);
+    let reflect_side = wi.dot(ng) * wo_world.dot(ng) > 0.0;
+    let transmits = matches!(bsdf, Bsdf::Dielectric { .. }) && bs.wi.z * wo.z < 0.0;
+    if reflect_side == transmits {
+        return None;
+    }
+    Some((wi, bs))
+}
+
+/// Moves `p` off the surface with normal `n` to the side `dir` points to.
+#[inline]
+pub fn offset_ray_origin(p: Vec3, n: Vec3, dir: Vec3, eps: f32) -> Vec3 {
+    offset_point(p, n, dir, eps)
 }
 
 /// The primary sample position of a camera sample: uniform inside the pixel.

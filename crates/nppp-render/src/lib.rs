@@ -4,9 +4,11 @@
 pub mod accel;
 pub mod bsdf;
 pub mod camera;
+pub mod datagen;
 pub mod image_io;
 pub mod integrator;
 pub mod lights;
+pub mod object_walk;
 pub mod render;
 pub mod scene_data;
 

@@ -1,0 +1,89 @@
+//! BVH ray throughput (primary = coherent camera rays, incoherent = random
+//! directions from surface points, occlusion = shadow rays to the light),
+//! BSDF sampling, and whole-path samples per second on the default scene.
+
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use glam::{Vec2, Vec3};
+use nppp_geom::{SampleRng, sampling::uniform_sphere};
+use nppp_render::bsdf::Bsdf;
+use nppp_render::{RenderOptions, RenderScene};
+use rayon::prelude::*;
+
+const RAYS: usize = 1 << 16;
+
+fn rays(rs: &RenderScene) -> (Vec<(Vec3, Vec3)>, Vec<(Vec3, Vec3)>, Vec<(Vec3, Vec3, f32)>) {
+    let mut rng = SampleRng::from_seed(1);
+    let (w, h) = (rs.camera.width as f32, rs.camera.height as f32);
+    let primary: Vec<(Vec3, Vec3)> = (0..RAYS).map(|_| (rs.camera.origin, rs.camera.ray_dir(rng.uniform2() * Vec2::new(w, h)))).collect();
+    // Incoherent: from the first hit of each primary ray, in a random direction.
+    let mut incoherent = Vec::with_capacity(RAYS);
+    let mut shadow = Vec::with_capacity(RAYS);
+    let light = Vec3::new(278.0, 548.0, 279.5);
+    for (o, d) in &primary {
+        if let Some(hit) = rs.accel.intersect(*o, *d, f32::INFINITY) {
+            let p = *o + *d * (hit.t * 0.999);
+            incoherent.push((p, uniform_sphere(rng.uniform2())));
+            let to = light - p;
+            shadow.push((p, to.normalize(), to.length() * 0.999));
+        }
+    }
+    (primary, incoherent, shadow)
+}
+
+fn bvh(c: &mut Criterion) {
+    let rs = RenderScene::new(&nppp_benches::default_scene());
+    let (primary, incoherent, shadow) = rays(&rs);
+    let mut g = c.benchmark_group("bvh_2_threads");
+    g.throughput(Throughput::Elements(primary.len() as u64));
+    g.bench_function("closest_hit_primary", |b| {
+        b.iter(|| primary.par_iter().filter(|(o, d)| rs.accel.intersect(*o, *d, f32::INFINITY).is_some()).count())
+    });
+    g.throughput(Throughput::Elements(incoherent.len() as u64));
+    g.bench_function("closest_hit_incoherent", |b| {
+        b.iter(|| incoherent.par_iter().filter(|(o, d)| rs.accel.intersect(*o, *d, f32::INFINITY).is_some()).count())
+    });
+    g.throughput(Throughput::Elements(shadow.len() as u64));
+    g.bench_function("occlusion", |b| b.iter(|| shadow.par_iter().filter(|(o, d, t)| rs.accel.occluded(*o, *d, *t)).count()));
+    g.finish();
+}
+
+fn bsdf(c: &mut Criterion) {
+    let mut g = c.benchmark_group("bsdf_sample");
+    g.throughput(Throughput::Elements(1024));
+    let wo = Vec3::new(0.3, 0.2, 0.9).normalize();
+    for (name, b) in [
+        ("diffuse", Bsdf::Diffuse { albedo: Vec3::splat(0.5) }),
+        ("ggx", Bsdf::Conductor { reflectance: Vec3::ONE, alpha: 0.3 }),
+        ("dielectric", Bsdf::Dielectric { ior: 1.5 }),
+    ] {
+        let mut rng = SampleRng::from_seed(2);
+        g.bench_function(name, |bch| {
+            bch.iter(|| {
+                let mut acc = 0.0f32;
+                for _ in 0..1024 {
+                    if let Some(s) = b.sample(wo, rng.uniform(), rng.uniform2()) {
+                        acc += s.weight.x;
+                    }
+                }
+                acc
+            })
+        });
+    }
+    g.finish();
+}
+
+fn path_tracing(c: &mut Criterion) {
+    let mut scene = nppp_benches::default_scene();
+    scene.camera.width = 64;
+    scene.camera.height = 64;
+    let rs = RenderScene::new(&scene);
+    let spp = 4;
+    let mut g = c.benchmark_group("path_tracing_default_scene");
+    g.sample_size(10);
+    g.throughput(Throughput::Elements(64 * 64 * spp as u64));
+    g.bench_function("samples_M5", |b| b.iter(|| nppp_render::render(&rs, &RenderOptions { spp, max_bounces: 5, seed: 1, progress: false })));
+    g.finish();
+}
+
+criterion_group!(benches, bvh, bsdf, path_tracing);
+criterion_main!(benches);

@@ -1,0 +1,310 @@
+//! `nppp gen`: training data for one (mesh, material) estimator.
+//!
+//! The object is named the way users attach estimators (an instance of a
+//! scene), or directly by mesh and material for objects that are in no scene
+//! yet. Either way the estimator lives in mesh space, so an instance's
+//! transform is ignored: one data set serves every instance of the object.
+
+use anyhow::{Context, Result, bail, ensure};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use nppp_estimator::WriterOptions;
+use nppp_estimator::dataset::MAX_K;
+use nppp_render::datagen::{DEFAULT_MAX_INTERNAL_BOUNCES, GenConfig, GenObject, GenStats, generate, measure_bvh};
+use nppp_scene::procedural::Procedural;
+use nppp_scene::{Mesh, Scene, SceneError};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// The thesis' data set size, used for the projection printed at the end.
+const THESIS_RAYS: u64 = 200_000;
+const THESIS_K: u64 = 512;
+
+/// Material presets for `--material NAME`: the scene format's examples.
+const PRESETS: &[(&str, &str)] = &[
+    ("white", r#"{"type": "diffuse", "albedo": [0.73, 0.73, 0.73]}"#),
+    ("gold", r#"{"type": "conductor", "reflectance": [1.0, 0.78, 0.34], "roughness": 0.2}"#),
+    ("mirror", r#"{"type": "conductor", "reflectance": [1.0, 1.0, 1.0], "roughness": 0.0}"#),
+    ("glass", r#"{"type": "dielectric", "ior": 1.5}"#),
+];
+
+#[derive(Args, Debug)]
+pub struct GenArgs {
+    /// Take the object from this scene file (with --instance): the mesh and
+    /// material of one instance, without its transform.
+    #[arg(long, requires = "instance", conflicts_with_all = ["mesh", "material"])]
+    pub scene: Option<PathBuf>,
+    /// Instance of --scene, counted from 0 in the order of its "instances" list.
+    #[arg(long, requires = "scene")]
+    pub instance: Option<usize>,
+    /// The mesh, instead of --scene: an OBJ file; `builtin` (the project's
+    /// torus knot, as in data/scenes/cornell-box.json);
+    /// `procedural:torus_knot|displaced_sphere|menger_sponge` (standard
+    /// parameters); or a scene-format mesh object in JSON, e.g.
+    /// '{"procedural": {"type": "menger_sponge", "level": 2}}'.
+    #[arg(long, requires = "material")]
+    pub mesh: Option<String>,
+    /// Shade an OBJ --mesh with its vertex normals (the scene format's "smooth": true).
+    #[arg(long, requires = "mesh")]
+    pub smooth: bool,
+    /// The material for --mesh: scene-format JSON, e.g.
+    /// '{"type": "diffuse", "albedo": [0.8, 0.6, 0.35]}', or a preset: white, gold, mirror, glass.
+    #[arg(long, requires = "mesh")]
+    pub material: Option<String>,
+    /// Input rays, uniform in the 4D sphere-pair parameterization.
+    #[arg(long, default_value_t = THESIS_RAYS)]
+    pub rays: u64,
+    /// Exits traced per input ray that hits the object.
+    #[arg(long, default_value_t = THESIS_K as u32)]
+    pub k: u32,
+    /// Seed of every random stream: the file is a function of the object,
+    /// the flags and this seed, whatever the thread count.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Paths still inside after this many scattering events are recorded as
+    /// zero-throughput exits.
+    #[arg(long, default_value_t = DEFAULT_MAX_INTERNAL_BOUNCES)]
+    pub max_internal_bounces: u32,
+    /// Output data file (written to a temporary file, renamed when complete).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also measure the bare BVH's closest-hit rate on this mesh and compare.
+    #[arg(long)]
+    pub measure_bvh: bool,
+    /// Store chunks uncompressed (faster to write, several times larger).
+    #[arg(long)]
+    pub no_compress: bool,
+    /// Hide the progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+pub fn run(a: &GenArgs) -> Result<()> {
+    ensure!(a.rays >= 1, "--rays must be at least 1");
+    ensure!((1..=MAX_K).contains(&a.k), "--k must be 1 to {MAX_K} (got {})", a.k);
+    ensure!(a.max_internal_bounces >= 1, "--max-internal-bounces must be at least 1");
+    ensure!(!a.out.is_dir(), "--out {}: is a directory; give a file name", a.out.display());
+    let t0 = Instant::now();
+    let obj = load_object(a)?;
+    let build = t0.elapsed().as_secs_f64();
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("--out {}: cannot create its folder", a.out.display()))?;
+    }
+    let cfg = GenConfig { rays: a.rays, k: a.k, seed: a.seed, max_internal_bounces: a.max_internal_bounces };
+    let threads = rayon::current_num_threads();
+    let s = obj.sphere;
+    eprintln!(
+        "gen: mesh \"{}\" ({} triangles, {:016x}), material \"{}\" ({:016x}), BVH built in {build:.2}s",
+        obj.mesh_name, obj.triangles, obj.mesh_hash, obj.material_name, obj.material_hash
+    );
+    eprintln!(
+        "gen: sphere centre [{} {} {}] radius {}; {} rays x k = {}, seed {}, cap {} bounces, {threads} threads",
+        s.center.x, s.center.y, s.center.z, s.radius, a.rays, a.k, a.seed, a.max_internal_bounces
+    );
+
+    let bar = progress_bar(a.rays, a.quiet);
+    let mut progress = |st: &GenStats| {
+        bar.set_position(st.rays);
+        bar.set_message(format!("{:.2} M exits/s, {:.1}% hit", st.exits_per_second() / 1e6, 100.0 * st.hit_fraction()));
+    };
+    let options = WriterOptions { compress: !a.no_compress, ..WriterOptions::default() };
+    let report = generate(&obj, &cfg, &a.out, options, &mut progress);
+    bar.finish_and_clear();
+    let report = report?;
+    let (st, sum) = (&report.stats, &report.summary);
+    let t = st.mean_throughput();
+    println!("{}", sum.path.display());
+    println!("  rays        {} ({:.1}% hit the mesh)", st.rays, 100.0 * st.hit_fraction());
+    println!(
+        "  exits       {} ({} zero-throughput, {} of them at the bounce cap), mean bounces {:.3}",
+        st.exits,
+        st.zero_exits,
+        st.capped_exits,
+        st.mean_bounces()
+    );
+    println!("  mean exit throughput [{:.4} {:.4} {:.4}]", t[0], t[1], t[2]);
+    println!(
+        "  time        {:.2}s: {:.3} M exits/s, {:.0} rays/s, {:.2} M BVH queries/s in the walks ({threads} threads)",
+        st.seconds,
+        st.exits_per_second() / 1e6,
+        st.rays_per_second(),
+        st.bvh_queries_per_second() / 1e6
+    );
+    println!(
+        "  file        {} in {} chunks, {:.2} bytes/exit ({:.2} before compression)",
+        human_bytes(sum.file_bytes),
+        sum.chunks,
+        sum.bytes_per_exit(),
+        sum.raw_bytes as f64 / st.exits.max(1) as f64
+    );
+    if st.repaired_exits > 0 {
+        eprintln!(
+            "warning: {} exits had a non-finite throughput or radiance and were stored as zero (a BSDF bug)",
+            st.repaired_exits
+        );
+    }
+    if st.exits > 0 {
+        let exits = THESIS_RAYS as f64 * st.hit_fraction() * THESIS_K as f64;
+        println!(
+            "  projection  {THESIS_RAYS} rays x k = {THESIS_K}: {:.1} M exits, {} and {:.1} min at this rate",
+            exits / 1e6,
+            human_bytes((exits * sum.bytes_per_exit()) as u64),
+            exits / st.exits_per_second() / 60.0
+        );
+    }
+    if a.measure_bvh {
+        let m = measure_bvh(&obj, a.seed ^ 0x5eed_b7a5, 1 << 18, 2.0);
+        let walk = st.bvh_queries_per_second();
+        println!(
+            "  bare BVH    {:.2} M closest-hit rays/s on random chords ({:.1}% hit, {threads} threads)",
+            m.rays_per_second() / 1e6,
+            100.0 * m.hits as f64 / m.rays.max(1) as f64
+        );
+        println!(
+            "  ratio       walks make {:.2} M queries/s = {:.0}% of the bare BVH rate ({:.2} queries per exit: entry hit + bounces)",
+            walk / 1e6,
+            100.0 * walk / m.rays_per_second(),
+            (st.exits + st.bounce_sum + st.rays) as f64 / st.exits.max(1) as f64
+        );
+    }
+    Ok(())
+}
+
+fn progress_bar(rays: u64, quiet: bool) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::with_draw_target(Some(rays), ProgressDrawTarget::stderr_with_hz(4));
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} rays, {msg}, ETA {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.enable_steady_tick(Duration::from_millis(250));
+    bar
+}
+
+fn human_bytes(b: u64) -> String {
+    let b = b as f64;
+    match b {
+        _ if b >= (1u64 << 30) as f64 => format!("{:.2} GiB", b / (1u64 << 30) as f64),
+        _ if b >= (1u64 << 20) as f64 => format!("{:.1} MiB", b / (1u64 << 20) as f64),
+        _ if b >= 1024.0 => format!("{:.1} KiB", b / 1024.0),
+        _ => format!("{b} bytes"),
+    }
+}
+
+/// The object named by the flags.
+fn load_object(a: &GenArgs) -> Result<GenObject> {
+    if let Some(path) = &a.scene {
+        let scene = nppp_scene::load_scene(path)?;
+        let index = a.instance.context("--scene needs --instance N")?;
+        return Ok(GenObject::from_scene_instance(&scene, index)?);
+    }
+    let (Some(mesh), Some(material)) = (&a.mesh, &a.material) else {
+        bail!("name the object with --scene FILE --instance N, or with --mesh and --material");
+    };
+    let (material_name, material_json) = material_spec(material)?;
+    let (mesh_name, mesh) = match procedural_spec(mesh)? {
+        Some(p) => {
+            let m = p.build().with_context(|| format!("--mesh {mesh}"))?;
+            (p.name(), Mesh { positions: m.positions, triangles: m.triangles, shading_normals: None })
+        }
+        None => {
+            let (name, json) = mesh_spec(mesh, a.smooth)?;
+            let scene = object_scene(&json, &material_json)?;
+            let m = scene.meshes.into_iter().next().context("internal: the one-object scene has no mesh")?;
+            (name, m)
+        }
+    };
+    // Validated through the scene loader, so --material obeys the scene format exactly.
+    let scene = object_scene(r#"{"box": {"min": [0, 0, 0], "max": [1, 1, 1]}}"#, &material_json)?;
+    Ok(GenObject::new(&mesh_name, &mesh, &material_name, scene.materials[0])?)
+}
+
+/// `builtin` and `procedural:TYPE`: the project's standard objects.
+fn procedural_spec(s: &str) -> Result<Option<Procedural>> {
+    // `builtin` is the object of the default scene, data/scenes/cornell-box.json.
+    let ty = match s {
+        "builtin" => "torus_knot",
+        _ => match s.strip_prefix("procedural:") {
+            Some(ty) => ty,
+            None => return Ok(None),
+        },
+    };
+    let found = Procedural::defaults().into_iter().find(|p| {
+        matches!(
+            (ty, p),
+            ("displaced_sphere", Procedural::DisplacedSphere { .. })
+                | ("torus_knot", Procedural::TorusKnot { .. })
+                | ("menger_sponge", Procedural::MengerSponge { .. })
+        )
+    });
+    match found {
+        Some(p) => Ok(Some(p)),
+        None => bail!("--mesh {s}: unknown procedural type \"{ty}\" (known: torus_knot, displaced_sphere, menger_sponge)"),
+    }
+}
+
+/// An OBJ path or a JSON mesh object, as the scene-format mesh JSON and a name.
+fn mesh_spec(s: &str, smooth: bool) -> Result<(String, String)> {
+    if s.trim_start().starts_with('{') {
+        let v: serde_json::Value = serde_json::from_str(s).with_context(|| format!("--mesh: not valid JSON: {s}"))?;
+        ensure!(v.is_object(), "--mesh: expected a JSON object such as {{\"icosphere\": {{...}}}}, got {s}");
+        return Ok(("inline-mesh".to_string(), v.to_string()));
+    }
+    let path = Path::new(s);
+    ensure!(path.is_file(), "--mesh {s}: no such file (expected an OBJ file, `builtin`, `procedural:TYPE` or a JSON mesh object)");
+    let abs = std::path::absolute(path).with_context(|| format!("--mesh {s}"))?;
+    let name = path.file_stem().map_or_else(|| "mesh".to_string(), |n| n.to_string_lossy().into_owned());
+    let json = serde_json::json!({ "obj": abs.to_string_lossy(), "smooth": smooth });
+    Ok((name, json.to_string()))
+}
+
+/// A preset name or material JSON, as a name and the scene-format JSON.
+fn material_spec(s: &str) -> Result<(String, String)> {
+    if let Some((name, json)) = PRESETS.iter().find(|(n, _)| *n == s) {
+        return Ok((name.to_string(), json.to_string()));
+    }
+    if !s.trim_start().starts_with('{') {
+        let names: Vec<&str> = PRESETS.iter().map(|(n, _)| *n).collect();
+        bail!("--material {s}: not a preset ({}) nor a JSON object such as {{\"type\": \"diffuse\", \"albedo\": [0.8, 0.6, 0.35]}}", names.join(", "));
+    }
+    let v: serde_json::Value = serde_json::from_str(s).with_context(|| format!("--material: not valid JSON: {s}"))?;
+    let ty = v.get("type").and_then(|t| t.as_str()).unwrap_or("material").to_string();
+    ensure!(v.is_object(), "--material: expected a JSON object, got {s}");
+    Ok((ty, v.to_string()))
+}
+
+/// A one-instance scene around the given mesh and material JSON, so that
+/// both are validated by the scene loader exactly as in a scene file. Both
+/// are re-serialized JSON values here, so they cannot break out of their slot.
+fn object_scene(mesh_json: &str, material_json: &str) -> Result<Scene> {
+    let text = format!(
+        r#"{{"camera": {{"position": [0, 0, -5], "look_at": [0, 0, 0], "fov_y_deg": 40, "width": 1, "height": 1}},
+            "materials": {{"m": {material_json}}}, "meshes": {{"object": {mesh_json}}},
+            "instances": [{{"mesh": "object", "material": "m"}}]}}"#
+    );
+    nppp_scene::parse_scene(&text, Path::new("(command line)")).map_err(|e| anyhow::anyhow!(flag_error(e)))
+}
+
+/// Scene-loader errors reworded to name the flag instead of a scene file that does not exist.
+fn flag_error(e: SceneError) -> String {
+    let flag_of = |key: &str| -> (&'static str, String) {
+        for (prefix, flag) in [("materials.m", "--material"), ("meshes.object", "--mesh")] {
+            if let Some(rest) = key.strip_prefix(prefix) {
+                return (flag, rest.trim_start_matches('.').to_string());
+            }
+        }
+        ("--mesh/--material", key.to_string())
+    };
+    match e {
+        SceneError::Invalid { key, message, .. } => {
+            let (flag, rest) = flag_of(&key);
+            if rest.is_empty() { format!("{flag}: {message}") } else { format!("{flag}: {rest}: {message}") }
+        }
+        SceneError::Obj { obj, line, message, .. } => {
+            format!("--mesh {}{}: {message}", obj.display(), line.map(|l| format!(":{l}")).unwrap_or_default())
+        }
+        other => other.to_string(),
+    }
+}

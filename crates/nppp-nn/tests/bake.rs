@@ -1,0 +1,109 @@
+//! Baking: grid nodes hold the encoder's output within the quantization
+//! step, the file carries the model's identity, and the held-out comparison
+//! of baked and unbaked estimators runs.
+
+use std::fs;
+use std::path::PathBuf;
+
+use nppp_estimator::grid::node_coords;
+use nppp_estimator::{BakedEstimator, DatasetWriter};
+use nppp_geom::SpherePair;
+use nppp_nn::eval::BurnEstimator;
+use nppp_nn::synthetic::SyntheticObject;
+use nppp_nn::{BackendKind, BakeOptions, TrainOptions, bake, load_model_dir, synthetic_header, train};
+
+fn tmp(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("nppp-nn-{name}"));
+    let _ = fs::remove_dir_all(&d);
+    fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A tiny trained model directory, trained from a real data file.
+fn trained(dir: &PathBuf) -> PathBuf {
+    let data = dir.join("mirror.npppdata");
+    let mut header = synthetic_header("mirror-ball", 8);
+    header.mesh_hash = 0xDEAD_BEEF;
+    header.material_hash = 42;
+    header.max_internal_bounces = 16;
+    let mut w = DatasetWriter::create(&data, header).unwrap();
+    for r in SyntheticObject::Mirror { radius: 0.6 }.rays(400, 8, 3) {
+        w.write(&r).unwrap();
+    }
+    w.finish().unwrap();
+    let model = dir.join("model");
+    let mut o = TrainOptions::new(&data, &model);
+    o.backend = BackendKind::Ndarray;
+    o.quiet = true;
+    o.batch = Some(16);
+    o.k = Some(8);
+    o.encoder_width = Some(32);
+    o.decoder_width = Some(16);
+    o.steps_per_epoch = Some(10);
+    o.epochs = Some(1);
+    o.minutes = 0.0;
+    train(&o).unwrap();
+    model
+}
+
+#[test]
+fn baked_nodes_equal_the_encoder_within_the_quantization_step() {
+    let dir = tmp("bake");
+    let model = trained(&dir);
+    let device = BackendKind::Ndarray.device().unwrap();
+    let loaded = load_model_dir(&model, &device).unwrap();
+    let est = BurnEstimator::new(&loaded.model, loaded.meta.transform.clone(), 16, 16).unwrap();
+    let res = 4u32;
+    let nodes: Vec<SpherePair> = (0..res.pow(4) as usize).map(|i| SpherePair(node_coords(res, i))).collect();
+    let z = est.latents(&nodes).unwrap();
+    for bits in [8u8, 4, 2] {
+        let out = dir.join(format!("m{bits}.nppp"));
+        let mut o = BakeOptions::new(&model, &out);
+        o.backend = BackendKind::Ndarray;
+        o.latent_grid = res;
+        o.mask_grid = 3;
+        o.bits = bits;
+        o.quiet = true;
+        o.eval_rays = 16;
+        let rep = bake(&o).unwrap();
+        assert!(rep.max_node_error_steps <= 0.5 + 1e-3, "{rep:?}");
+        let b = BakedEstimator::load(&out).unwrap();
+        assert_eq!(b.meta.mesh_name, "mirror-ball");
+        assert_eq!(b.meta.mesh_hash, 0xDEAD_BEEF);
+        assert_eq!(b.meta.material_hash, 42);
+        assert_eq!(b.meta.max_internal_bounces, 16);
+        assert_eq!(b.latent.bits, bits);
+        assert_eq!(b.mask.res, 3);
+        let c = b.latent.channels as usize;
+        for (k, &x) in z.iter().enumerate() {
+            let step = b.latent.scale[k % c];
+            let got = b.latent.node_value(k / c, k % c);
+            assert!((got - x).abs() <= 0.5 * step + 1e-5 * x.abs().max(1.0), "node {} ch {}: {got} vs {x} (step {step})", k / c, k % c);
+        }
+        // The decoder in the file is the trained one, exactly.
+        assert_eq!(b.decoder, loaded.model.export_decoder().unwrap());
+        let (u, m) = (rep.unbaked.unwrap(), rep.baked.unwrap());
+        assert!(u.hit_rays > 0 && m.hit_rays == u.hit_rays);
+        assert!(m.chamfer.is_finite() && m.mask_accuracy > 0.0);
+    }
+}
+
+#[test]
+fn bake_errors_are_clear() {
+    let dir = tmp("bake-errors");
+    let mut o = BakeOptions::new(dir.join("missing"), dir.join("x.nppp"));
+    o.backend = BackendKind::Ndarray;
+    o.quiet = true;
+    let err = bake(&o).unwrap_err();
+    assert!(err.to_string().contains("does not exist"), "{err}");
+    let model = trained(&dir);
+    let mut o = BakeOptions::new(&model, dir.join("x.nppp"));
+    o.backend = BackendKind::Ndarray;
+    o.quiet = true;
+    o.latent_grid = 1;
+    let err = bake(&o).unwrap_err();
+    assert!(err.to_string().contains("resolution"), "{err}");
+    o.latent_grid = 200;
+    let err = bake(&o).unwrap_err();
+    assert!(err.to_string().contains("GiB"), "{err}");
+}

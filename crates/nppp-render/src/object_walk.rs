@@ -1,0 +1,110 @@
+//! Tracing a path through one object alone: no lights, no other geometry, no
+//! Russian roulette, until it leaves the object's bounding sphere. This is
+//! the ground truth the estimator learns (training data) and the "oracle"
+//! estimator that checks the renderer's estimator integration.
+//!
+//! Everything is in mesh space, and in and out in the unit sphere's frame.
+
+use crate::accel::Blas;
+use crate::bsdf::Bsdf;
+use crate::integrator::{offset_ray_origin, sample_scatter, shading_frame};
+use crate::scene_data::{OFFSET_REL, SurfaceKind};
+use glam::Vec3;
+use nppp_estimator::Exit;
+use nppp_geom::sphere_pair::unit_sphere_chord;
+use nppp_geom::{BoundingSphere, Ray, SampleRng};
+
+/// One object: its BLAS, what its surface does, its bounding sphere, and
+/// (for smooth meshes) vertex normals.
+pub struct ObjectTracer<'a> {
+    pub blas: &'a Blas,
+    pub surface: SurfaceKind,
+    pub sphere: BoundingSphere,
+    pub geo_normals: &'a [Vec3],
+    pub shading_normals: Option<&'a [[Vec3; 3]]>,
+    /// Paths still inside after this many internal bounces end as zero-throughput exits.
+    pub max_internal_bounces: u32,
+}
+
+/// The result of one walk.
+#[derive(Clone, Copy, Debug)]
+pub enum Walk {
+    /// The entry ray never touched the mesh (mask label 0).
+    Miss,
+    /// It hit the mesh; this is where the light went.
+    Exit(Exit),
+}
+
+impl ObjectTracer<'_> {
+    /// Does the unit-frame ray hit the mesh at all (the mask label)?
+    pub fn hits(&self, ray: &Ray) -> bool {
+        let o = self.sphere.from_unit_point(ray.origin);
+        self.blas.intersect(o.into(), ray.dir.into(), 0.0, f32::INFINITY).is_some()
+    }
+
+    /// Follows the unit-frame ray `ray` (starting on or outside the sphere)
+    /// through the object with the random stream `rng`.
+    pub fn walk(&self, ray: &Ray, rng: &mut SampleRng) -> Walk {
+        let r = self.sphere.radius;
+        let mut o = self.sphere.from_unit_point(ray.origin);
+        let mut d = ray.dir;
+        let mut beta = Vec3::ONE;
+        let mut radiance = Vec3::ZERO;
+        let mut bounces = 0u32;
+        let mut first = true;
+        loop {
+            let Some(h) = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY) else {
+                if first {
+                    return Walk::Miss;
+                }
+                return Walk::Exit(self.leave(o, d, beta, radiance, bounces));
+            };
+            first = false;
+            let p = o + d * h.t;
+            let ng = self.geo_normals[h.prim as usize];
+            let wo = -d;
+            let bsdf: Bsdf = match self.surface {
+                SurfaceKind::Emitter { radiance: le } => {
+                    if wo.dot(ng) > 0.0 {
+                        radiance += beta * le;
+                    }
+                    return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
+                }
+                SurfaceKind::Scatter(b) => b,
+            };
+            if bounces >= self.max_internal_bounces {
+                return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
+            }
+            let ns = match self.shading_normals {
+                Some(n) => {
+                    let [n0, n1, n2] = n[h.prim as usize];
+                    let s = (n0 * (1.0 - h.b1 - h.b2) + n1 * h.b1 + n2 * h.b2).normalize_or_zero();
+                    if s.dot(ng) > 0.0 { s } else { ng }
+                }
+                None => ng,
+            };
+            let (frame, _) = shading_frame(&bsdf, ng, ns, wo);
+            let u_lobe = rng.uniform();
+            let u_dir = rng.uniform2();
+            bounces += 1;
+            let Some((wi, bs)) = sample_scatter(&bsdf, &frame, ng, wo, u_lobe, u_dir) else {
+                return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
+            };
+            beta *= bs.weight;
+            let eps = (p.abs().max_element().max(r) * OFFSET_REL).max(f32::MIN_POSITIVE);
+            o = offset_ray_origin(p, ng, wi, eps);
+            d = wi;
+            if beta == Vec3::ZERO {
+                return Walk::Exit(self.leave(o, d, beta, radiance, bounces));
+            }
+        }
+    }
+
+    /// The exit where the mesh-space ray (o, d) leaves the sphere, in the unit frame.
+    fn leave(&self, o: Vec3, d: Vec3, throughput: Vec3, radiance: Vec3, bounces: u32) -> Exit {
+        let uo = self.sphere.to_unit_point(o);
+        let t = unit_sphere_chord(&Ray::new(uo, d)).map_or(0.0, |c| c.t_out.max(0.0));
+        let position = (uo + d * t).normalize_or(Vec3::Z);
+        Exit { position, direction: d, throughput, radiance, bounces }
+    }
+}
