@@ -159,16 +159,17 @@ def render(scene, variant="scalar_rgb", spp=None, max_bounces=None, seed=None, t
         dr.eval(warm)
         dr.sync_thread()
         t_warm = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     img = mi.render(mscene, spp=spp, seed=seed)
     dr.eval(img)
     dr.sync_thread()
     t_render = time.perf_counter() - t0
+    c_render = time.process_time() - c0
     arr = np.array(img, dtype=np.float32)
     info = {
         "variant": variant, "spp": spp, "max_bounces": max_bounces, "max_depth": max_bounces + 1,
         "seed": seed, "threads": dr.thread_count(), "load_s": t_load, "warmup_s": t_warm,
-        "render_s": t_render,
+        "render_s": t_render, "render_cpu_s": c_render,
         "samples_per_s": scene.camera.width * scene.camera.height * spp / t_render,
         "mi": mi,
     }
@@ -220,7 +221,8 @@ def main(argv=None):
           f"mean RGB {arr.reshape(-1, 3).mean(axis=0).round(6).tolist()}")
     if a.time:
         print(f"time: load {info['load_s']:.3f} s, warm-up {info['warmup_s']:.3f} s, "
-              f"render {info['render_s']:.3f} s")
+              f"render {info['render_s']:.3f} s (process CPU {info['render_cpu_s']:.3f} s; "
+              f"{w * h * info['spp'] / info['render_cpu_s']:.4g} samples per CPU-second)")
         print(f"samples/s: {info['samples_per_s']:.4g} ({w}x{h}x{info['spp']} samples, "
               f"threads {info['threads']}, variant {info['variant']})")
     return 0

@@ -4,7 +4,9 @@
 //! `cargo run --release -p nppp-estimator --example estimator_measure`
 
 use nppp_estimator::dataset::{DatasetHeader, DatasetWriter, RayRecord, WriterOptions};
-use nppp_estimator::{BakedEstimator, Dense, EXIT_FEATURES, EstimatorMeta, EstimatorSampler, Exit, ExitTransform, QuantizedGrid, SamplerScratch};
+use nppp_estimator::{
+    BakedEstimator, Dense, EXIT_FEATURES, EstimatorMeta, EstimatorSampler, Exit, ExitTransform, QuantizedGrid, SamplerScratch,
+};
 use nppp_geom::{BoundingSphere, SampleRng, SpherePair, Vec3};
 use std::hint::black_box;
 use std::time::Instant;
@@ -38,6 +40,34 @@ fn grid_speed() {
             g.data.len() as f64 / (1 << 20) as f64,
             (reps * pairs.len()) as f64 / dt / 1e6,
             dt * 1e9 / (reps * pairs.len()) as f64
+        );
+    }
+    // Coherent rays (a random walk in the 4D space, like neighbouring pixels):
+    // what the cache sees when a tile's rays hit one object.
+    let mut walk = [0.5f32; 4];
+    let coherent: Vec<SpherePair> = (0..1 << 20)
+        .map(|_| {
+            for x in &mut walk {
+                *x = (*x + (rng.uniform() - 0.5) * 0.004).rem_euclid(1.0);
+            }
+            SpherePair(walk)
+        })
+        .collect();
+    for bits in [8u8, 4, 2] {
+        let g = QuantizedGrid::from_f32(res, 16, &values, bits).unwrap();
+        let mut out = [0.0f32; 16];
+        let mut acc = 0.0f32;
+        let t = Instant::now();
+        for p in &coherent {
+            g.interpolate(black_box(p), &mut out);
+            acc += out[3];
+        }
+        let dt = t.elapsed().as_secs_f64();
+        black_box(acc);
+        println!(
+            "latent 32^4 x 16 @ {bits} bit, coherent rays: {:.2} M lookups/s ({:.0} ns each)",
+            coherent.len() as f64 / dt / 1e6,
+            dt * 1e9 / coherent.len() as f64
         );
     }
     let mask = QuantizedGrid::from_f32(res, 1, &values[..n], 8).unwrap();
@@ -85,7 +115,11 @@ fn grid_speed() {
     }
     black_box(&outs);
     let dt = t.elapsed().as_secs_f64();
-    println!("sample (32->64->64->13 decoder): {:.2} M samples/s, {}", n_s as f64 / dt / 1e6, s.baked().describe().lines().last().unwrap_or(""));
+    println!(
+        "sample (32->64->64->13 decoder): {:.2} M samples/s, {}",
+        n_s as f64 / dt / 1e6,
+        s.baked().describe().lines().last().unwrap_or("")
+    );
 }
 
 fn synthetic(rng: &mut SampleRng, k: u32, hit_rate: f32) -> RayRecord {

@@ -11,23 +11,83 @@ use nppp_geom::{Ray, SpherePair};
 
 pub struct EstimatorSampler {
     baked: BakedEstimator,
+    /// The decoder with transposed weights (see [`FastLayer`]).
+    layers: Vec<FastLayer>,
     latent_dim: usize,
     noise_dim: usize,
     mlp_scratch: usize,
 }
 
+/// A decoder layer stored `[inputs][outputs]`. `Mlp::forward_into` computes
+/// each output as a dot product, a serial chain of dependent adds; here each
+/// input adds a scaled weight row to all outputs at once, which vectorizes
+/// and skips the inputs that ReLU zeroed. Same sums, different order: equal
+/// to `Mlp::forward_into` within float rounding, not bit for bit.
+#[derive(Clone, Debug)]
+struct FastLayer {
+    inputs: usize,
+    outputs: usize,
+    weight_t: Vec<f32>,
+    bias: Vec<f32>,
+    relu: bool,
+}
+
+impl FastLayer {
+    fn from_mlp(mlp: &crate::mlp::Mlp) -> Vec<Self> {
+        let last = mlp.layers.len().saturating_sub(1);
+        mlp.layers
+            .iter()
+            .enumerate()
+            .map(|(li, l)| {
+                let mut weight_t = vec![0.0; l.inputs * l.outputs];
+                for o in 0..l.outputs {
+                    for i in 0..l.inputs {
+                        weight_t[i * l.outputs + o] = l.weight[o * l.inputs + i];
+                    }
+                }
+                Self { inputs: l.inputs, outputs: l.outputs, weight_t, bias: l.bias.clone(), relu: li < last }
+            })
+            .collect()
+    }
+}
+
+/// Runs the layers on one row held in `buf[..inputs]`; returns the output's
+/// position in `buf` (the first or the second half).
+#[inline]
+fn forward_fast(layers: &[FastLayer], buf: &mut [f32]) -> usize {
+    let half = buf.len() / 2;
+    let (mut a, mut b) = buf.split_at_mut(half);
+    let mut in_second = false;
+    for l in layers {
+        let next = &mut b[..l.outputs];
+        next.copy_from_slice(&l.bias);
+        for (&x, row) in a[..l.inputs].iter().zip(l.weight_t.chunks_exact(l.outputs)) {
+            if x != 0.0 {
+                for (n, &w) in next.iter_mut().zip(row) {
+                    *n += x * w;
+                }
+            }
+        }
+        if l.relu {
+            next.iter_mut().for_each(|v| *v = v.max(0.0));
+        }
+        std::mem::swap(&mut a, &mut b);
+        in_second = !in_second;
+    }
+    if in_second { half } else { 0 }
+}
+
 /// Per-thread buffers for [`EstimatorSampler::sample`].
 #[derive(Clone, Debug)]
 pub struct SamplerScratch {
-    /// Decoder input `[z, r]`.
-    input: Vec<f32>,
     output: [f32; EXIT_FEATURES],
+    /// Two layer-width halves; the first starts as the decoder input `[z, r]`.
     mlp: Vec<f32>,
 }
 
 impl SamplerScratch {
     pub fn new(sampler: &EstimatorSampler) -> Self {
-        Self { input: vec![0.0; sampler.latent_dim + sampler.noise_dim], output: [0.0; EXIT_FEATURES], mlp: vec![0.0; sampler.mlp_scratch] }
+        Self { output: [0.0; EXIT_FEATURES], mlp: vec![0.0; sampler.mlp_scratch] }
     }
 }
 
@@ -47,7 +107,8 @@ impl EstimatorSampler {
         let latent_dim = baked.meta.latent_dim as usize;
         let noise_dim = baked.meta.noise_dim as usize;
         let mlp_scratch = 2 * baked.decoder.max_width();
-        Ok(Self { baked, latent_dim, noise_dim, mlp_scratch })
+        let layers = FastLayer::from_mlp(&baked.decoder);
+        Ok(Self { baked, layers, latent_dim, noise_dim, mlp_scratch })
     }
 
     pub fn baked(&self) -> &BakedEstimator {
@@ -95,11 +156,23 @@ impl EstimatorSampler {
     /// One exit for the chord `pair`, driven by `r` (`noise_dim` standard
     /// normals; panics if shorter). The exit is in the unit sphere's frame.
     pub fn sample(&self, pair: &SpherePair, r: &[f32], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) -> Exit {
-        let (z, noise) = scratch.input.split_at_mut(self.latent_dim);
+        let (z, noise) = scratch.mlp[..self.latent_dim + self.noise_dim].split_at_mut(self.latent_dim);
         self.baked.latent.interpolate(pair, z);
         noise.copy_from_slice(&r[..self.noise_dim]);
-        self.baked.decoder.forward_into(&scratch.input, &mut scratch.output, &mut scratch.mlp);
+        let at = forward_fast(&self.layers, &mut scratch.mlp);
+        scratch.output.copy_from_slice(&scratch.mlp[at..at + EXIT_FEATURES]);
         self.baked.transform.decode(&scratch.output, self.baked.meta.max_internal_bounces, repairs)
+    }
+
+    /// The decoder's raw output (standardized features) for one input row
+    /// `[z, r]`; what [`Self::sample`] feeds to the inverse transform.
+    pub fn decode_features(&self, input: &[f32], scratch: &mut SamplerScratch) -> [f32; EXIT_FEATURES] {
+        let n = self.latent_dim + self.noise_dim;
+        scratch.mlp[..n].copy_from_slice(&input[..n]);
+        let at = forward_fast(&self.layers, &mut scratch.mlp);
+        let mut f = [0.0; EXIT_FEATURES];
+        f.copy_from_slice(&scratch.mlp[at..at + EXIT_FEATURES]);
+        f
     }
 
     /// [`Self::sample`] for a ray given in the unit sphere's frame; `None`
@@ -176,9 +249,27 @@ mod tests {
         let input: Vec<f32> = z.iter().chain(&r).copied().collect();
         let mut f = [0.0f32; EXIT_FEATURES];
         est.decoder.forward_batch(&input, &mut f);
+        let fast = s.decode_features(&input, &mut scratch);
+        for (a, b) in fast.iter().zip(&f) {
+            assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{fast:?} vs {f:?}");
+        }
         let mut rep2 = DecodeRepairs::default();
-        assert_eq!(e, est.transform.decode(&f, 64, &mut rep2));
+        let want = est.transform.decode(&f, 64, &mut rep2);
+        assert!(e.position.distance(want.position) < 1e-5 && e.direction.distance(want.direction) < 1e-5, "{e:?} {want:?}");
+        assert!((e.throughput - want.throughput).abs().max_element() <= 1e-4 * (1.0 + want.throughput.max_element()));
+        assert_eq!(e.bounces, want.bounces);
         assert_eq!(rep, rep2);
+        // The fast decoder against the reference `Mlp` on many inputs, with
+        // exact zeros (skipped inputs) among them.
+        for k in 0..200 {
+            let input: Vec<f32> = (0..7).map(|i| if (k + i) % 3 == 0 { 0.0 } else { ((k * 7 + i * 13) % 17) as f32 / 4.0 - 2.0 }).collect();
+            let mut f = [0.0f32; EXIT_FEATURES];
+            est.decoder.forward_batch(&input, &mut f);
+            let fast = s.decode_features(&input, &mut scratch);
+            for (a, b) in fast.iter().zip(&f) {
+                assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{fast:?} vs {f:?}");
+            }
+        }
         // Batch = loop.
         let pairs = [pair, SpherePair([0.0, 0.0, 1.0, 0.5]), pair];
         let rs = [r, [0.0; 3], [1.0, 1.0, 1.0]].concat();

@@ -248,8 +248,11 @@ pub struct TrainReport {
     pub steps_this_run: u64,
     pub epochs_completed: f64,
     pub elapsed_s: f64,
-    /// Mean wall time of one optimizer step in this invocation.
+    /// Mean wall time of one optimizer step in this invocation, everything
+    /// included (batch assembly, evaluation, checkpoints).
     pub seconds_per_step: f64,
+    /// Mean time of the step alone: batch assembly, forward, backward, Adam.
+    pub step_seconds: f64,
     pub stopped_by_time: bool,
     pub metrics: Option<HeldoutMetrics>,
 }
@@ -763,6 +766,7 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
     let mut perm_epoch = u64::MAX;
     let mut perm = Vec::new();
     let mut stopped_by_time = false;
+    let mut step_time = 0.0f64;
     let eval_opts = EvalOptions {
         max_hit_rays: cfg.eval_rays,
         ..EvalOptions::default()
@@ -785,8 +789,11 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
             perm = epoch_permutation(cfg.seed, epoch, n_hit);
             perm_epoch = epoch;
         }
+        let ts = Instant::now();
         let batch = make_batch(&cfg, &data, &perm, state.step, spe);
-        let (m, v) = match train_step(model, &mut optim, &cfg, cfg.lr, batch, &ad) {
+        let stepped = train_step(model, &mut optim, &cfg, cfg.lr, batch, &ad);
+        step_time += ts.elapsed().as_secs_f64();
+        let (m, v) = match stepped {
             Ok(x) => x,
             Err((_, value)) => {
                 pb.abandon();
@@ -893,6 +900,7 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
         epochs_completed: state.step as f64 / spe as f64,
         elapsed_s: state.elapsed_s,
         seconds_per_step: t0.elapsed().as_secs_f64() / run.max(1) as f64,
+        step_seconds: step_time / run.max(1) as f64,
         stopped_by_time,
         metrics: state.last_metrics,
     })

@@ -182,7 +182,7 @@ pub struct SceneHit {
 pub struct Accel {
     pub blas: Vec<Blas>,
     pub instances: Vec<InstanceXform>,
-    tlas: Option<CwBvh>,
+    pub(crate) tlas: Option<CwBvh>,
     /// World-space bounds of every instance (for the scene's scale and the TLAS).
     pub instance_bounds: Vec<(Vec3, Vec3)>,
 }
@@ -229,12 +229,22 @@ impl Accel {
     /// Closest hit along a world ray (unit direction) with t in (0, tmax).
     #[inline]
     pub fn intersect(&self, o: Vec3, d: Vec3, tmax: f32) -> Option<SceneHit> {
+        self.intersect_skipping(o, d, tmax, u32::MAX)
+    }
+
+    /// [`Self::intersect`] ignoring instance `skip` (the one a path has just
+    /// left through its estimator).
+    #[inline]
+    pub fn intersect_skipping(&self, o: Vec3, d: Vec3, tmax: f32, skip: u32) -> Option<SceneHit> {
         let tlas = self.tlas.as_ref()?;
         let ray = BvhRay::new(o.into(), d.into(), 0.0, tmax);
         let mut hit = RayHit::none();
         let mut best: Option<SceneHit> = None;
         tlas.ray_traverse(ray, &mut hit, |r, id| {
             let inst_id = tlas.primitive_indices[id];
+            if inst_id == skip {
+                return f32::INFINITY;
+            }
             let x = &self.instances[inst_id as usize];
             let oo = x.point_to_object(o);
             let od = x.dir_to_object(d);

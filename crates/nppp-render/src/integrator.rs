@@ -12,6 +12,7 @@
 //! `depth + 1` events.
 
 use crate::accel::SceneHit;
+use crate::estimator::{EntryBatch, EstimatorStats, Meet};
 use crate::bsdf::Bsdf;
 use crate::scene_data::{RenderScene, SurfaceKind};
 use glam::{Vec2, Vec3};
@@ -48,6 +49,9 @@ pub struct PathState {
     pub prev_point: Vec3,
     /// Product of the radiance scalings at refractions, undone for Russian roulette.
     pub eta_scale: f32,
+    /// The instance whose estimator this ray has just left (ignored by the
+    /// next intersection), or `u32::MAX`.
+    pub skip_instance: u32,
 }
 
 impl PathState {
@@ -64,6 +68,7 @@ impl PathState {
             prev_delta: true,
             prev_point: origin,
             eta_scale: 1.0,
+            skip_instance: u32::MAX,
         }
     }
 }
@@ -103,10 +108,15 @@ impl PixelSum {
 #[derive(Default)]
 pub struct Wavefront {
     pub paths: Vec<PathState>,
-    pub hits: Vec<Option<SceneHit>>,
+    pub meets: Vec<Meet>,
+    /// Outcome per path of this step's estimator exits.
+    next: Vec<Next>,
+    batch: EntryBatch,
+    pub estimator_stats: EstimatorStats,
 }
 
-/// Outcome of shading one path vertex.
+/// Outcome of advancing one path by one event.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Next {
     Continue,
     Terminate,
@@ -117,14 +127,17 @@ impl Wavefront {
     pub fn run(&mut self, scene: &RenderScene, settings: &IntegratorSettings, film: &mut [PixelSum]) {
         while !self.paths.is_empty() {
             self.intersect(scene);
+            self.answer_estimators(scene, settings);
             let mut w = 0;
             for r in 0..self.paths.len() {
-                let hit = self.hits[r];
-                let next = shade(scene, settings, &mut self.paths[r], hit);
+                let next = match self.meets[r] {
+                    Meet::Nothing => Next::Terminate,
+                    Meet::Surface(hit) => shade(scene, settings, &mut self.paths[r], hit),
+                    Meet::Estimator(_) => self.next[r],
+                };
                 match next {
                     Next::Continue => {
                         self.paths.swap(w, r);
-                        self.hits.swap(w, r);
                         w += 1;
                     }
                     Next::Terminate => {
@@ -138,9 +151,69 @@ impl Wavefront {
     }
 
     fn intersect(&mut self, scene: &RenderScene) {
-        self.hits.clear();
-        self.hits.extend(self.paths.iter().map(|p| scene.accel.intersect(p.origin, p.dir, f32::INFINITY)));
+        self.meets.clear();
+        let stats = &mut self.estimator_stats;
+        self.meets.extend(self.paths.iter().map(|p| match &scene.estimators {
+            Some(est) if p.depth >= est.min_bounces => est.intersect(&scene.accel, p.origin, p.dir, p.skip_instance, stats),
+            _ => scene.accel.intersect_skipping(p.origin, p.dir, f32::INFINITY, p.skip_instance).map_or(Meet::Nothing, Meet::Surface),
+        }));
     }
+
+    /// Gathers this step's estimator entries, answers them in one batch, and
+    /// moves each of those paths to its exit.
+    fn answer_estimators(&mut self, scene: &RenderScene, settings: &IntegratorSettings) {
+        let Some(ests) = &scene.estimators else { return };
+        self.batch.entries.clear();
+        self.batch.entries.extend(self.meets.iter().enumerate().filter_map(|(i, m)| match m {
+            Meet::Estimator(e) => Some((i, *e)),
+            _ => None,
+        }));
+        if self.batch.entries.is_empty() {
+            return;
+        }
+        self.batch.answer(ests, scene, &mut self.paths, &mut self.estimator_stats);
+        self.next.clear();
+        self.next.resize(self.paths.len(), Next::Terminate);
+        for (k, (i, entry)) in self.batch.entries.iter().enumerate() {
+            let est = &ests.list[ests.per_instance[entry.instance as usize].unwrap_or(0) as usize];
+            let exit = self.batch.exits[k];
+            self.next[*i] = follow_exit(scene, settings, &mut self.paths[*i], entry.instance, &est.sphere, &exit, &mut self.estimator_stats);
+        }
+    }
+}
+
+/// Continues a path from an estimator exit. The exit ray starts from the exit
+/// point moved back along its direction to the plane through the sphere's
+/// centre (the thesis' rule), so it cannot start behind a floor that cuts the
+/// sphere; the instance itself is skipped by the next intersection.
+fn follow_exit(
+    scene: &RenderScene,
+    s: &IntegratorSettings,
+    path: &mut PathState,
+    instance: u32,
+    sphere: &nppp_geom::BoundingSphere,
+    e: &nppp_estimator::Exit,
+    stats: &mut EstimatorStats,
+) -> Next {
+    path.radiance += path.beta * e.radiance;
+    path.beta *= e.throughput;
+    path.depth = path.depth.saturating_add(e.bounces);
+    if path.depth > s.max_bounces {
+        stats.over_max_bounces += 1;
+        return Next::Terminate;
+    }
+    if path.beta == Vec3::ZERO || !path.beta.is_finite() {
+        return Next::Terminate;
+    }
+    let x = &scene.accel.instances[instance as usize];
+    let origin_unit = e.position - e.direction * e.position.dot(e.direction);
+    path.origin = x.point_to_world(sphere.from_unit_point(origin_unit));
+    path.dir = x.dir_to_world(e.direction).normalize();
+    // No NEE happened at the skipped vertices: an emitter hit next counts fully.
+    path.prev_delta = true;
+    path.prev_point = path.origin;
+    path.skip_instance = instance;
+    Next::Continue
 }
 
 /// Moves `p` off the surface with normal `n` to the side `dir` points to.
@@ -149,8 +222,7 @@ fn offset_point(p: Vec3, n: Vec3, dir: Vec3, eps: f32) -> Vec3 {
     if dir.dot(n) >= 0.0 { p + n * eps } else { p - n * eps }
 }
 
-fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit: Option<SceneHit>) -> Next {
-    let Some(hit) = hit else { return Next::Terminate };
+fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit: SceneHit) -> Next {
     let p = path.origin + path.dir * hit.t;
     let (ng, ns) = scene.normals_at(&hit);
     let wo_world = -path.dir;
@@ -215,6 +287,7 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
     path.depth += 1;
     path.origin = offset_point(p, ng, wi, eps);
     path.dir = wi;
+    path.skip_instance = u32::MAX;
 
     if path.depth >= RR_START_DEPTH {
         let q = (1.0 - (path.beta * path.eta_scale).max_element()).max(0.0);

@@ -4,6 +4,7 @@
 pub mod accel;
 pub mod bsdf;
 pub mod camera;
+pub mod estimator;
 pub mod datagen;
 pub mod image_io;
 pub mod integrator;

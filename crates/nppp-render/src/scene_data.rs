@@ -31,6 +31,8 @@ pub struct RenderScene {
     /// Absolute floor for ray offsets: relative to the scene's size so that the
     /// same scene at 1e-4 and 1e4 is offset alike.
     pub offset_floor: f32,
+    /// Estimators attached to instances; `None` runs no estimator code at all.
+    pub estimators: Option<crate::estimator::Estimators>,
 }
 
 /// Relative size of the offset that moves a spawned ray off its surface;
@@ -92,6 +94,7 @@ impl RenderScene {
             geo_normals,
             accel,
             offset_floor,
+            estimators: None,
         }
     }
 

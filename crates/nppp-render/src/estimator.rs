@@ -1,0 +1,273 @@
+//! Estimators attached to instances, and how a path meets them.
+//!
+//! For a path with at least P bounces whose ray starts outside an estimator
+//! instance's bounding sphere, the instance is a sphere: the ray is
+//! intersected with the sphere in instance space, the mask decides whether
+//! the real mesh would have been hit (a miss skips the instance without
+//! touching its BLAS), and a hit whose chord is clear of other geometry
+//! becomes an *estimator entry*. Entries are gathered across the wavefront
+//! and answered in one batch (neural decoder or oracle walk), then each path
+//! continues from its exit.
+
+use crate::accel::{Accel, SceneHit};
+use crate::object_walk::{ObjectTracer, Walk};
+use crate::scene_data::SurfaceKind;
+use glam::Vec3;
+use nppp_estimator::{DecodeRepairs, EXIT_FEATURES, EstimatorSampler, Exit};
+use nppp_geom::sphere_pair::unit_sphere_chord;
+use crate::integrator::PathState;
+use nppp_geom::{BoundingSphere, Ray, SpherePair};
+use obvhs::ray::{Ray as BvhRay, RayHit};
+
+/// Runs a decoder on many rows at once. The renderer calls it once per
+/// wavefront step, so a GPU or Burn implementation amortizes its overhead;
+/// the default runs the baked weights in plain Rust.
+pub trait BatchDecoder: Send + Sync {
+    /// `input` holds `rows` rows of `latent_dim + noise_dim` floats; writes
+    /// `rows` rows of `EXIT_FEATURES` floats to `output`.
+    fn decode(&self, input: &[f32], rows: usize, output: &mut [f32]);
+    fn name(&self) -> &str;
+}
+
+/// What answers an estimator query.
+pub enum EstimatorModel {
+    /// A baked neural estimator; `decoder` overrides the CPU decoder.
+    Neural { sampler: EstimatorSampler, decoder: Option<Box<dyn BatchDecoder>> },
+    /// Ground truth: traces the object alone from the entry ray. Exact up to
+    /// the interaction with other geometry inside the sphere, so it tests the
+    /// integration independently of any network.
+    Oracle { mesh: usize, surface: SurfaceKind, max_internal_bounces: u32 },
+}
+
+pub struct Estimator {
+    pub model: EstimatorModel,
+    /// In mesh space.
+    pub sphere: BoundingSphere,
+}
+
+/// All estimators of a scene and which instance uses which.
+pub struct Estimators {
+    pub list: Vec<Estimator>,
+    /// Per instance: index into `list`.
+    pub per_instance: Vec<Option<u32>>,
+    /// P: an estimator is used once a path has made at least this many bounces.
+    pub min_bounces: u32,
+}
+
+/// A path's ray entering an estimator sphere, in that estimator's unit frame.
+#[derive(Clone, Copy, Debug)]
+pub struct EstimatorEntry {
+    pub instance: u32,
+    /// Starts at the sphere entry point.
+    pub ray: Ray,
+    pub pair: SpherePair,
+}
+
+/// What a path's ray meets next.
+#[derive(Clone, Copy, Debug)]
+pub enum Meet {
+    Nothing,
+    Surface(SceneHit),
+    Estimator(EstimatorEntry),
+}
+
+/// Counters reported at the end of a render.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct EstimatorStats {
+    pub entries: u64,
+    pub mask_skips: u64,
+    /// Rays whose closest other hit fell inside the chord: traced for real.
+    pub ambiguous: u64,
+    pub repairs: DecodeRepairs,
+    /// Exits whose internal bounces took the path past M.
+    pub over_max_bounces: u64,
+}
+
+impl EstimatorStats {
+    pub fn merge(&mut self, o: &EstimatorStats) {
+        self.entries += o.entries;
+        self.mask_skips += o.mask_skips;
+        self.ambiguous += o.ambiguous;
+        self.over_max_bounces += o.over_max_bounces;
+        self.repairs.degenerate += o.repairs.degenerate;
+        self.repairs.inward += o.repairs.inward;
+        self.repairs.clamped += o.repairs.clamped;
+    }
+}
+
+struct Candidate {
+    t_in: f32,
+    t_out: f32,
+    entry: EstimatorEntry,
+}
+
+impl Estimators {
+    /// Closest-hit query for a path that may use estimators. `skip` is an
+    /// instance the ray has just left through its estimator (ignored entirely).
+    pub fn intersect(&self, accel: &Accel, o: Vec3, d: Vec3, skip: u32, stats: &mut EstimatorStats) -> Meet {
+        let Some(tlas) = accel.tlas.as_ref() else { return Meet::Nothing };
+        let ray = BvhRay::new(o.into(), d.into(), 0.0, f32::INFINITY);
+        let mut hit = RayHit::none();
+        let mut best: Option<SceneHit> = None;
+        let mut cand: Option<Candidate> = None;
+        tlas.ray_traverse(ray, &mut hit, |r, id| {
+            let inst = tlas.primitive_indices[id];
+            if inst == skip {
+                return f32::INFINITY;
+            }
+            let x = &accel.instances[inst as usize];
+            let oo = x.point_to_object(o);
+            let od = x.dir_to_object(d);
+            if let Some(ei) = self.per_instance[inst as usize] {
+                let est = &self.list[ei as usize];
+                let uo = est.sphere.to_unit_point(oo);
+                // A ray from inside the sphere never uses it: trace the mesh.
+                if uo.length_squared() > 1.0 {
+                    let unit_ray = Ray::new(uo, od);
+                    let Some(chord) = unit_sphere_chord(&unit_ray) else { return f32::INFINITY };
+                    if chord.t_in < 0.0 {
+                        return f32::INFINITY;
+                    }
+                    let entry_p = unit_ray.at(chord.t_in);
+                    let pair = SpherePair::from_points(entry_p, unit_ray.at(chord.t_out));
+                    if !self.mask_hits(est, accel, &Ray::new(entry_p, od), &pair) {
+                        stats.mask_skips += 1;
+                        return f32::INFINITY;
+                    }
+                    let to_world = est.sphere.radius * x.scale;
+                    let t_in = chord.t_in * to_world;
+                    if t_in < r.tmax && cand.as_ref().is_none_or(|c| t_in < c.t_in) {
+                        cand = Some(Candidate {
+                            t_in,
+                            t_out: chord.t_out * to_world,
+                            entry: EstimatorEntry { instance: inst, ray: Ray::new(entry_p, od), pair },
+                        });
+                    }
+                    // Do not shorten the ray: geometry inside the chord must still be found.
+                    return f32::INFINITY;
+                }
+            }
+            match accel.blas[x.blas as usize].intersect(oo.into(), od.into(), 0.0, r.tmax * x.inv_scale) {
+                Some(h) => {
+                    let t = h.t * x.scale;
+                    best = Some(SceneHit { t, instance: inst, prim: h.prim, b1: h.b1, b2: h.b2 });
+                    t
+                }
+                None => f32::INFINITY,
+            }
+        });
+        match (cand, best) {
+            (None, None) => Meet::Nothing,
+            (None, Some(h)) => Meet::Surface(h),
+            (Some(c), None) => Meet::Estimator(c.entry),
+            (Some(c), Some(h)) if h.t < c.t_in => Meet::Surface(h),
+            (Some(c), Some(h)) if h.t > c.t_out => Meet::Estimator(c.entry),
+            (Some(_), Some(_)) => {
+                // Other geometry inside the chord: the order of events is
+                // ambiguous, so this one ray is traced against the real mesh.
+                stats.ambiguous += 1;
+                accel.intersect_skipping(o, d, f32::INFINITY, skip).map_or(Meet::Nothing, Meet::Surface)
+            }
+        }
+    }
+
+    fn mask_hits(&self, est: &Estimator, accel: &Accel, unit_ray: &Ray, pair: &SpherePair) -> bool {
+        match &est.model {
+            EstimatorModel::Neural { sampler, .. } => sampler.hits(pair),
+            EstimatorModel::Oracle { mesh, .. } => {
+                let o = est.sphere.from_unit_point(unit_ray.origin);
+                accel.blas[*mesh].intersect(o.into(), unit_ray.dir.into(), 0.0, f32::INFINITY).is_some()
+            }
+        }
+    }
+}
+
+/// Reusable buffers for answering a wavefront step's entries in batches.
+#[derive(Default)]
+pub struct EntryBatch {
+    /// (path index, entry)
+    pub entries: Vec<(usize, EstimatorEntry)>,
+    inputs: Vec<f32>,
+    outputs: Vec<f32>,
+    rows: Vec<usize>,
+    pub exits: Vec<Exit>,
+}
+
+impl EntryBatch {
+    /// Answers every gathered entry: one decoder call per neural estimator,
+    /// one object walk per oracle entry, each drawing from its own path's stream.
+    pub fn answer(
+        &mut self,
+        ests: &Estimators,
+        scene: &crate::scene_data::RenderScene,
+        paths: &mut [PathState],
+        stats: &mut EstimatorStats,
+    ) {
+        self.exits.clear();
+        self.exits.resize(self.entries.len(), Exit::default());
+        stats.entries += self.entries.len() as u64;
+        for (ei, est) in ests.list.iter().enumerate() {
+            self.rows.clear();
+            self.rows.extend(
+                self.entries.iter().enumerate().filter(|(_, (_, e))| ests.per_instance[e.instance as usize] == Some(ei as u32)).map(|(i, _)| i),
+            );
+            if self.rows.is_empty() {
+                continue;
+            }
+            match &est.model {
+                EstimatorModel::Neural { sampler, decoder } => {
+                    let (ld, nd) = (sampler.latent_dim(), sampler.noise_dim());
+                    let width = ld + nd;
+                    self.inputs.clear();
+                    self.inputs.resize(self.rows.len() * width, 0.0);
+                    for (k, &i) in self.rows.iter().enumerate() {
+                        let (path, entry) = &self.entries[i];
+                        let row = &mut self.inputs[k * width..(k + 1) * width];
+                        sampler.latent(&entry.pair, &mut row[..ld]);
+                        let rng = &mut paths[*path].rng;
+                        for v in &mut row[ld..] {
+                            *v = rng.normal();
+                        }
+                    }
+                    self.outputs.clear();
+                    self.outputs.resize(self.rows.len() * EXIT_FEATURES, 0.0);
+                    match decoder {
+                        Some(dec) => dec.decode(&self.inputs, self.rows.len(), &mut self.outputs),
+                        None => sampler.baked().decoder.forward_batch(&self.inputs, &mut self.outputs),
+                    }
+                    let tr = &sampler.baked().transform;
+                    let max_b = sampler.meta().max_internal_bounces;
+                    for (k, &i) in self.rows.iter().enumerate() {
+                        let f: &[f32; EXIT_FEATURES] = self.outputs[k * EXIT_FEATURES..(k + 1) * EXIT_FEATURES].try_into().unwrap_or(&[0.0; EXIT_FEATURES]);
+                        self.exits[i] = tr.decode(f, max_b, &mut stats.repairs);
+                    }
+                }
+                EstimatorModel::Oracle { mesh, surface, max_internal_bounces } => {
+                    let tracer = ObjectTracer {
+                        blas: &scene.accel.blas[*mesh],
+                        surface: *surface,
+                        sphere: est.sphere,
+                        geo_normals: &scene.geo_normals[*mesh],
+                        shading_normals: scene.shading_normals[*mesh].as_deref(),
+                        max_internal_bounces: *max_internal_bounces,
+                    };
+                    for &i in &self.rows {
+                        let (path, entry) = &self.entries[i];
+                        let rng = &mut paths[*path].rng;
+                        self.exits[i] = match tracer.walk(&entry.ray, rng) {
+                            Walk::Exit(e) => e,
+                            // The exact mask said hit, so the walk hits too; keep the path alive straight through.
+                            Walk::Miss => Exit {
+                                position: entry.pair.exit(),
+                                direction: entry.ray.dir,
+                                throughput: Vec3::ONE,
+                                radiance: Vec3::ZERO,
+                                bounces: 0,
+                            },
+                        };
+                    }
+                }
+            }
+        }
+    }
+}
