@@ -10,7 +10,9 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use nppp_estimator::WriterOptions;
 use nppp_estimator::dataset::MAX_K;
-use nppp_render::datagen::{DEFAULT_MAX_INTERNAL_BOUNCES, GenConfig, GenObject, GenStats, generate, measure_bvh};
+use nppp_render::datagen::{
+    DEFAULT_MAX_INTERNAL_BOUNCES, GenConfig, GenObject, GenStats, generate, measure_bvh,
+};
 use nppp_scene::procedural::Procedural;
 use nppp_scene::{Mesh, Scene, SceneError};
 use std::path::{Path, PathBuf};
@@ -22,9 +24,18 @@ const THESIS_K: u64 = 512;
 
 /// Material presets for `--material NAME`: the scene format's examples.
 const PRESETS: &[(&str, &str)] = &[
-    ("white", r#"{"type": "diffuse", "albedo": [0.73, 0.73, 0.73]}"#),
-    ("gold", r#"{"type": "conductor", "reflectance": [1.0, 0.78, 0.34], "roughness": 0.2}"#),
-    ("mirror", r#"{"type": "conductor", "reflectance": [1.0, 1.0, 1.0], "roughness": 0.0}"#),
+    (
+        "white",
+        r#"{"type": "diffuse", "albedo": [0.73, 0.73, 0.73]}"#,
+    ),
+    (
+        "gold",
+        r#"{"type": "conductor", "reflectance": [1.0, 0.78, 0.34], "roughness": 0.2}"#,
+    ),
+    (
+        "mirror",
+        r#"{"type": "conductor", "reflectance": [1.0, 1.0, 1.0], "roughness": 0.0}"#,
+    ),
     ("glass", r#"{"type": "dielectric", "ior": 1.5}"#),
 ];
 
@@ -81,16 +92,33 @@ pub struct GenArgs {
 
 pub fn run(a: &GenArgs) -> Result<()> {
     ensure!(a.rays >= 1, "--rays must be at least 1");
-    ensure!((1..=MAX_K).contains(&a.k), "--k must be 1 to {MAX_K} (got {})", a.k);
-    ensure!(a.max_internal_bounces >= 1, "--max-internal-bounces must be at least 1");
-    ensure!(!a.out.is_dir(), "--out {}: is a directory; give a file name", a.out.display());
+    ensure!(
+        (1..=MAX_K).contains(&a.k),
+        "--k must be 1 to {MAX_K} (got {})",
+        a.k
+    );
+    ensure!(
+        a.max_internal_bounces >= 1,
+        "--max-internal-bounces must be at least 1"
+    );
+    ensure!(
+        !a.out.is_dir(),
+        "--out {}: is a directory; give a file name",
+        a.out.display()
+    );
     let t0 = Instant::now();
     let obj = load_object(a)?;
     let build = t0.elapsed().as_secs_f64();
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("--out {}: cannot create its folder", a.out.display()))?;
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("--out {}: cannot create its folder", a.out.display()))?;
     }
-    let cfg = GenConfig { rays: a.rays, k: a.k, seed: a.seed, max_internal_bounces: a.max_internal_bounces };
+    let cfg = GenConfig {
+        rays: a.rays,
+        k: a.k,
+        seed: a.seed,
+        max_internal_bounces: a.max_internal_bounces,
+    };
     let threads = rayon::current_num_threads();
     let s = obj.sphere;
     eprintln!(
@@ -105,16 +133,27 @@ pub fn run(a: &GenArgs) -> Result<()> {
     let bar = progress_bar(a.rays, a.quiet);
     let mut progress = |st: &GenStats| {
         bar.set_position(st.rays);
-        bar.set_message(format!("{:.2} M exits/s, {:.1}% hit", st.exits_per_second() / 1e6, 100.0 * st.hit_fraction()));
+        bar.set_message(format!(
+            "{:.2} M exits/s, {:.1}% hit",
+            st.exits_per_second() / 1e6,
+            100.0 * st.hit_fraction()
+        ));
     };
-    let options = WriterOptions { compress: !a.no_compress, ..WriterOptions::default() };
+    let options = WriterOptions {
+        compress: !a.no_compress,
+        ..WriterOptions::default()
+    };
     let report = generate(&obj, &cfg, &a.out, options, &mut progress);
     bar.finish_and_clear();
     let report = report?;
     let (st, sum) = (&report.stats, &report.summary);
     let t = st.mean_throughput();
     println!("{}", sum.path.display());
-    println!("  rays        {} ({:.1}% hit the mesh)", st.rays, 100.0 * st.hit_fraction());
+    println!(
+        "  rays        {} ({:.1}% hit the mesh)",
+        st.rays,
+        100.0 * st.hit_fraction()
+    );
     println!(
         "  exits       {} ({} zero-throughput, {} of them at the bounce cap), mean bounces {:.3}",
         st.exits,
@@ -122,7 +161,10 @@ pub fn run(a: &GenArgs) -> Result<()> {
         st.capped_exits,
         st.mean_bounces()
     );
-    println!("  mean exit throughput [{:.4} {:.4} {:.4}]", t[0], t[1], t[2]);
+    println!(
+        "  mean exit throughput [{:.4} {:.4} {:.4}]",
+        t[0], t[1], t[2]
+    );
     println!(
         "  time        {:.2}s: {:.3} M exits/s, {:.0} rays/s, {:.2} M BVH queries/s in the walks ({threads} threads)",
         st.seconds,
@@ -176,8 +218,10 @@ fn progress_bar(rays: u64, quiet: bool) -> ProgressBar {
     }
     let bar = ProgressBar::with_draw_target(Some(rays), ProgressDrawTarget::stderr_with_hz(4));
     bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} rays, {msg}, ETA {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} rays, {msg}, ETA {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     bar.enable_steady_tick(Duration::from_millis(250));
     bar
@@ -207,18 +251,37 @@ fn load_object(a: &GenArgs) -> Result<GenObject> {
     let (mesh_name, mesh) = match procedural_spec(mesh)? {
         Some(p) => {
             let m = p.build().with_context(|| format!("--mesh {mesh}"))?;
-            (p.name(), Mesh { positions: m.positions, triangles: m.triangles, shading_normals: None })
+            (
+                p.name(),
+                Mesh {
+                    positions: m.positions,
+                    triangles: m.triangles,
+                    shading_normals: None,
+                },
+            )
         }
         None => {
             let (name, json) = mesh_spec(mesh, a.smooth)?;
             let scene = object_scene(&json, &material_json)?;
-            let m = scene.meshes.into_iter().next().context("internal: the one-object scene has no mesh")?;
+            let m = scene
+                .meshes
+                .into_iter()
+                .next()
+                .context("internal: the one-object scene has no mesh")?;
             (name, m)
         }
     };
     // Validated through the scene loader, so --material obeys the scene format exactly.
-    let scene = object_scene(r#"{"box": {"min": [0, 0, 0], "max": [1, 1, 1]}}"#, &material_json)?;
-    Ok(GenObject::new(&mesh_name, &mesh, &material_name, scene.materials[0])?)
+    let scene = object_scene(
+        r#"{"box": {"min": [0, 0, 0], "max": [1, 1, 1]}}"#,
+        &material_json,
+    )?;
+    Ok(GenObject::new(
+        &mesh_name,
+        &mesh,
+        &material_name,
+        scene.materials[0],
+    )?)
 }
 
 /// `builtin` and `procedural:TYPE`: the project's standard objects.
@@ -241,21 +304,32 @@ fn procedural_spec(s: &str) -> Result<Option<Procedural>> {
     });
     match found {
         Some(p) => Ok(Some(p)),
-        None => bail!("--mesh {s}: unknown procedural type \"{ty}\" (known: torus_knot, displaced_sphere, menger_sponge)"),
+        None => bail!(
+            "--mesh {s}: unknown procedural type \"{ty}\" (known: torus_knot, displaced_sphere, menger_sponge)"
+        ),
     }
 }
 
 /// An OBJ path or a JSON mesh object, as the scene-format mesh JSON and a name.
 fn mesh_spec(s: &str, smooth: bool) -> Result<(String, String)> {
     if s.trim_start().starts_with('{') {
-        let v: serde_json::Value = serde_json::from_str(s).with_context(|| format!("--mesh: not valid JSON: {s}"))?;
-        ensure!(v.is_object(), "--mesh: expected a JSON object such as {{\"icosphere\": {{...}}}}, got {s}");
+        let v: serde_json::Value =
+            serde_json::from_str(s).with_context(|| format!("--mesh: not valid JSON: {s}"))?;
+        ensure!(
+            v.is_object(),
+            "--mesh: expected a JSON object such as {{\"icosphere\": {{...}}}}, got {s}"
+        );
         return Ok(("inline-mesh".to_string(), v.to_string()));
     }
     let path = Path::new(s);
-    ensure!(path.is_file(), "--mesh {s}: no such file (expected an OBJ file, `builtin`, `procedural:TYPE` or a JSON mesh object)");
+    ensure!(
+        path.is_file(),
+        "--mesh {s}: no such file (expected an OBJ file, `builtin`, `procedural:TYPE` or a JSON mesh object)"
+    );
     let abs = std::path::absolute(path).with_context(|| format!("--mesh {s}"))?;
-    let name = path.file_stem().map_or_else(|| "mesh".to_string(), |n| n.to_string_lossy().into_owned());
+    let name = path
+        .file_stem()
+        .map_or_else(|| "mesh".to_string(), |n| n.to_string_lossy().into_owned());
     let json = serde_json::json!({ "obj": abs.to_string_lossy(), "smooth": smooth });
     Ok((name, json.to_string()))
 }
@@ -267,10 +341,18 @@ fn material_spec(s: &str) -> Result<(String, String)> {
     }
     if !s.trim_start().starts_with('{') {
         let names: Vec<&str> = PRESETS.iter().map(|(n, _)| *n).collect();
-        bail!("--material {s}: not a preset ({}) nor a JSON object such as {{\"type\": \"diffuse\", \"albedo\": [0.8, 0.6, 0.35]}}", names.join(", "));
+        bail!(
+            "--material {s}: not a preset ({}) nor a JSON object such as {{\"type\": \"diffuse\", \"albedo\": [0.8, 0.6, 0.35]}}",
+            names.join(", ")
+        );
     }
-    let v: serde_json::Value = serde_json::from_str(s).with_context(|| format!("--material: not valid JSON: {s}"))?;
-    let ty = v.get("type").and_then(|t| t.as_str()).unwrap_or("material").to_string();
+    let v: serde_json::Value =
+        serde_json::from_str(s).with_context(|| format!("--material: not valid JSON: {s}"))?;
+    let ty = v
+        .get("type")
+        .and_then(|t| t.as_str())
+        .unwrap_or("material")
+        .to_string();
     ensure!(v.is_object(), "--material: expected a JSON object, got {s}");
     Ok((ty, v.to_string()))
 }
@@ -284,7 +366,8 @@ fn object_scene(mesh_json: &str, material_json: &str) -> Result<Scene> {
             "materials": {{"m": {material_json}}}, "meshes": {{"object": {mesh_json}}},
             "instances": [{{"mesh": "object", "material": "m"}}]}}"#
     );
-    nppp_scene::parse_scene(&text, Path::new("(command line)")).map_err(|e| anyhow::anyhow!(flag_error(e)))
+    nppp_scene::parse_scene(&text, Path::new("(command line)"))
+        .map_err(|e| anyhow::anyhow!(flag_error(e)))
 }
 
 /// Scene-loader errors reworded to name the flag instead of a scene file that does not exist.
@@ -300,10 +383,20 @@ fn flag_error(e: SceneError) -> String {
     match e {
         SceneError::Invalid { key, message, .. } => {
             let (flag, rest) = flag_of(&key);
-            if rest.is_empty() { format!("{flag}: {message}") } else { format!("{flag}: {rest}: {message}") }
+            if rest.is_empty() {
+                format!("{flag}: {message}")
+            } else {
+                format!("{flag}: {rest}: {message}")
+            }
         }
-        SceneError::Obj { obj, line, message, .. } => {
-            format!("--mesh {}{}: {message}", obj.display(), line.map(|l| format!(":{l}")).unwrap_or_default())
+        SceneError::Obj {
+            obj, line, message, ..
+        } => {
+            format!(
+                "--mesh {}{}: {message}",
+                obj.display(),
+                line.map(|l| format!(":{l}")).unwrap_or_default()
+            )
         }
         other => other.to_string(),
     }

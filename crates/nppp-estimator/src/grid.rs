@@ -241,6 +241,17 @@ impl QuantizedGrid {
         for &n in &nodes {
             prefetch(&self.data, n * ch * bits / 8);
         }
+        if self.bits == 8 {
+            // Common widths get a fixed-size accumulator that stays in
+            // registers and a fully unrolled, vectorized inner loop.
+            match ch {
+                16 => return self.blend8::<16>(&nodes, &ws, out),
+                8 => return self.blend8::<8>(&nodes, &ws, out),
+                32 => return self.blend8::<32>(&nodes, &ws, out),
+                1 => return self.blend8::<1>(&nodes, &ws, out),
+                _ => {}
+            }
+        }
         out.fill(0.0);
         let whole_bytes = (ch * bits).is_multiple_of(8);
         for (&node, &w) in nodes.iter().zip(&ws) {
@@ -279,6 +290,24 @@ impl QuantizedGrid {
         }
         for ((o, &sc), &off) in out.iter_mut().zip(&self.scale).zip(&self.offset) {
             *o = *o * sc + off;
+        }
+    }
+
+    /// 8-bit blend of the 16 corners for exactly `N` channels.
+    #[inline(always)]
+    fn blend8<const N: usize>(&self, nodes: &[usize; 16], ws: &[f32; 16], out: &mut [f32]) {
+        let mut acc = [0.0f32; N];
+        for (&node, &w) in nodes.iter().zip(ws) {
+            // Always present for a validated grid; a hand-built broken one
+            // loses a corner instead of panicking in the renderer.
+            if let Some(codes) = self.data.get(node * N..).and_then(|s| s.first_chunk::<N>()) {
+                for (a, &q) in acc.iter_mut().zip(codes) {
+                    *a += w * q as f32;
+                }
+            }
+        }
+        for (((o, a), &sc), &off) in out.iter_mut().zip(acc).zip(&self.scale).zip(&self.offset) {
+            *o = a * sc + off;
         }
     }
 }
@@ -407,6 +436,70 @@ mod tests {
                 g.interpolate(&SpherePair([x; 4]), &mut out);
                 assert!(out.iter().all(|o| o.is_finite()));
             }
+        }
+    }
+
+    /// Straight from the definition: every corner's dequantized value times
+    /// its weight, no shared code with `interpolate`.
+    fn reference(g: &QuantizedGrid, p: [f32; 4], c: usize) -> f32 {
+        let s = g.res as usize;
+        let sf = g.res as f32;
+        let mut total = 0.0f64;
+        for corner in 0..16 {
+            let mut idx = [0usize; 4];
+            let mut w = 1.0f64;
+            for (axis, x) in p.iter().enumerate() {
+                let hi = corner >> (3 - axis) & 1;
+                let (i0, f) = if axis % 2 == 0 {
+                    let t = x.clamp(0.0, 1.0) * (sf - 1.0);
+                    let i0 = (t.floor() as usize).min(s - 2);
+                    (i0, t - i0 as f32)
+                } else {
+                    let t = x.rem_euclid(1.0) * sf;
+                    (t.floor() as usize % s, t - t.floor())
+                };
+                idx[axis] = if axis % 2 == 0 { i0 + hi } else { (i0 + hi) % s };
+                w *= if hi == 1 { f as f64 } else { 1.0 - f as f64 };
+            }
+            let node = ((idx[0] * s + idx[1]) * s + idx[2]) * s + idx[3];
+            total += w * g.node_value(node, c) as f64;
+        }
+        total as f32
+    }
+
+    #[test]
+    fn every_channel_width_and_depth_matches_the_definition() {
+        let mut seed = 7u32;
+        let mut rnd = move || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (seed >> 8) as f32 / (1 << 24) as f32
+        };
+        for ch in [1u32, 3, 8, 16, 32] {
+            for bits in [8u8, 4, 2] {
+                let (_, g) = test_grid(3, ch, bits);
+                let mut out = vec![0.0f32; ch as usize];
+                for _ in 0..50 {
+                    let p = [rnd(), rnd(), rnd(), rnd()];
+                    g.interpolate(&SpherePair(p), &mut out);
+                    for (c, &o) in out.iter().enumerate() {
+                        let want = reference(&g, p, c);
+                        assert!((o - want).abs() < 1e-4, "ch {ch} bits {bits} {p:?} channel {c}: {o} vs {want}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn zero_range_channel_interpolates_to_its_constant() {
+        let n = node_count(3);
+        let values: Vec<f32> = (0..n * 16).map(|k| if k % 16 == 5 { -0.625 } else { (k % 7) as f32 }).collect();
+        let g = QuantizedGrid::from_f32(3, 16, &values, 8).unwrap();
+        assert_eq!(g.scale[5], 0.0);
+        let mut out = [0.0f32; 16];
+        for p in [[0.1, 0.2, 0.3, 0.4], [0.0, 0.999, 1.0, 0.0], [f32::NAN; 4]] {
+            g.interpolate(&SpherePair(p), &mut out);
+            assert_eq!(out[5], -0.625);
         }
     }
 

@@ -285,7 +285,7 @@ const CHECKPOINT_EVERY_S: f64 = 300.0;
 
 const LOG_HEADER: &str = "epoch,step,elapsed_s,lr,train_loss,train_chamfer,train_energy,train_bce,\
 heldout_chamfer,heldout_energy,heldout_bce,mask_accuracy,throughput_error,throughput_bias,\
-throughput_noise_floor,radiance_error,radiance_bias,seconds_per_step";
+throughput_noise_floor,throughput_rms_error,radiance_error,radiance_bias,seconds_per_step";
 
 /// Trains on the data file named in `opts` (see [`TrainOptions`]).
 pub fn train(opts: &TrainOptions) -> Result<TrainReport> {
@@ -842,7 +842,7 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
             let avg: Vec<f64> = state.epoch_sums.iter().map(|s| s / c).collect();
             let sps = t0.elapsed().as_secs_f64() / (state.step - start_step).max(1) as f64;
             let row = format!(
-                "{:.4},{},{:.2},{:e},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5}",
+                "{:.4},{},{:.2},{:e},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5}",
                 state.step as f64 / spe as f64,
                 state.step,
                 state.elapsed_s,
@@ -858,6 +858,7 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
                 metrics.throughput_error,
                 metrics.throughput_bias,
                 metrics.throughput_noise_floor,
+                metrics.throughput_rms_error,
                 metrics.radiance_error,
                 metrics.radiance_bias,
                 sps
@@ -871,12 +872,13 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
             last_ckpt = Instant::now();
             append_log(&log_path, &row)?;
             pb.println(format!(
-                "epoch {:.2}: train {:.4}  held-out chamfer {:.4}  mask acc {:.2}%  throughput err {:.2}% (bias {:+.2}%, floor {:.2}%)",
+                "epoch {:.2}: train {:.4}  held-out chamfer {:.4}  mask acc {:.2}%  throughput err {:.2}% (rms {:.2}%, bias {:+.2}%, floor {:.2}%)",
                 state.step as f64 / spe as f64,
                 avg[0],
                 metrics.chamfer,
                 100.0 * metrics.mask_accuracy,
                 100.0 * metrics.throughput_error,
+                100.0 * metrics.throughput_rms_error,
                 100.0 * metrics.throughput_bias,
                 100.0 * metrics.throughput_noise_floor,
             ));

@@ -15,7 +15,9 @@ use crate::object_walk::{ObjectTracer, Walk};
 use crate::scene_data::surface_of;
 use glam::Vec3;
 use nppp_estimator::dataset::MAX_K;
-use nppp_estimator::{DatasetError, DatasetHeader, DatasetSummary, DatasetWriter, Exit, RayRecord, WriterOptions};
+use nppp_estimator::{
+    DatasetError, DatasetHeader, DatasetSummary, DatasetWriter, Exit, RayRecord, WriterOptions,
+};
 use nppp_geom::sphere_pair::unit_sphere_chord;
 use nppp_geom::{BoundingSphere, Ray, SampleRng, SpherePair};
 use nppp_scene::{Material, Mesh, Scene, material_content_hash, mesh_content_hash};
@@ -47,8 +49,14 @@ const EXITS_PER_TASK: usize = 32;
 pub enum GenError {
     #[error("mesh \"{0}\" has no triangles: there is nothing to learn")]
     EmptyMesh(String),
-    #[error("scene {scene}: instance {index} does not exist (the scene has {count} instances, numbered from 0)")]
-    NoSuchInstance { scene: String, index: usize, count: usize },
+    #[error(
+        "scene {scene}: instance {index} does not exist (the scene has {count} instances, numbered from 0)"
+    )]
+    NoSuchInstance {
+        scene: String,
+        index: usize,
+        count: usize,
+    },
     #[error("{0}")]
     Config(String),
     #[error(transparent)]
@@ -76,7 +84,12 @@ pub struct GenObject {
 impl GenObject {
     /// Prepares `mesh` in its own (mesh) space: the estimator is attached to
     /// instances later, each with its own transform.
-    pub fn new(mesh_name: &str, mesh: &Mesh, material_name: &str, material: Material) -> Result<Self, GenError> {
+    pub fn new(
+        mesh_name: &str,
+        mesh: &Mesh,
+        material_name: &str,
+        material: Material,
+    ) -> Result<Self, GenError> {
         if mesh.triangles.is_empty() {
             return Err(GenError::EmptyMesh(mesh_name.to_string()));
         }
@@ -105,11 +118,14 @@ impl GenObject {
     /// The mesh and material of instance `index` of a loaded scene, without
     /// the instance's transform.
     pub fn from_scene_instance(scene: &Scene, index: usize) -> Result<Self, GenError> {
-        let inst = scene.instances.get(index).ok_or_else(|| GenError::NoSuchInstance {
-            scene: scene.path.display().to_string(),
-            index,
-            count: scene.instances.len(),
-        })?;
+        let inst = scene
+            .instances
+            .get(index)
+            .ok_or_else(|| GenError::NoSuchInstance {
+                scene: scene.path.display().to_string(),
+                index,
+                count: scene.instances.len(),
+            })?;
         Self::new(
             &scene.mesh_names[inst.mesh],
             &scene.meshes[inst.mesh],
@@ -150,12 +166,22 @@ impl GenObject {
 pub fn material_json(m: &Material) -> String {
     let v = |c: Vec3| format!("[{}, {}, {}]", c.x, c.y, c.z);
     match *m {
-        Material::Diffuse { albedo } => format!(r#"{{"type": "diffuse", "albedo": {}}}"#, v(albedo)),
-        Material::Conductor { reflectance, roughness } => {
-            format!(r#"{{"type": "conductor", "reflectance": {}, "roughness": {roughness}}}"#, v(reflectance))
+        Material::Diffuse { albedo } => {
+            format!(r#"{{"type": "diffuse", "albedo": {}}}"#, v(albedo))
+        }
+        Material::Conductor {
+            reflectance,
+            roughness,
+        } => {
+            format!(
+                r#"{{"type": "conductor", "reflectance": {}, "roughness": {roughness}}}"#,
+                v(reflectance)
+            )
         }
         Material::Dielectric { ior } => format!(r#"{{"type": "dielectric", "ior": {ior}}}"#),
-        Material::Emitter { radiance } => format!(r#"{{"type": "emitter", "radiance": {}}}"#, v(radiance)),
+        Material::Emitter { radiance } => {
+            format!(r#"{{"type": "emitter", "radiance": {}}}"#, v(radiance))
+        }
     }
 }
 
@@ -176,10 +202,16 @@ impl GenConfig {
             return bad("rays = 0: at least one input ray is needed".into());
         }
         if self.k == 0 || self.k > MAX_K {
-            return bad(format!("k = {}: the exits per hit ray must be 1 to {MAX_K}", self.k));
+            return bad(format!(
+                "k = {}: the exits per hit ray must be 1 to {MAX_K}",
+                self.k
+            ));
         }
         if self.max_internal_bounces == 0 {
-            return bad("max_internal_bounces = 0 would make every hit an absorbed exit; use at least 1".into());
+            return bad(
+                "max_internal_bounces = 0 would make every hit an absorbed exit; use at least 1"
+                    .into(),
+            );
         }
         Ok(())
     }
@@ -208,7 +240,11 @@ pub fn exit_rng(seed: u64, index: u64, j: u32) -> SampleRng {
 pub fn trace_ray(tracer: &ObjectTracer, seed: u64, index: u64, k: u32) -> RayRecord {
     let (pair, ray) = input_ray(seed, index);
     if !tracer.hits(&ray) {
-        return RayRecord { pair, hit: false, exits: Vec::new() };
+        return RayRecord {
+            pair,
+            hit: false,
+            exits: Vec::new(),
+        };
     }
     let mut exits = Vec::with_capacity(k as usize);
     (0..k)
@@ -221,7 +257,11 @@ pub fn trace_ray(tracer: &ObjectTracer, seed: u64, index: u64, k: u32) -> RayRec
             Walk::Miss => straight_through(&ray),
         })
         .collect_into_vec(&mut exits);
-    RayRecord { pair, hit: true, exits }
+    RayRecord {
+        pair,
+        hit: true,
+        exits,
+    }
 }
 
 fn straight_through(ray: &Ray) -> Exit {
@@ -237,7 +277,10 @@ fn straight_through(ray: &Ray) -> Exit {
 
 /// Rays `range`, traced in parallel on the current rayon pool, in ray order.
 pub fn trace_rays(tracer: &ObjectTracer, seed: u64, range: Range<u64>, k: u32) -> Vec<RayRecord> {
-    range.into_par_iter().map(|i| trace_ray(tracer, seed, i, k)).collect()
+    range
+        .into_par_iter()
+        .map(|i| trace_ray(tracer, seed, i, k))
+        .collect()
 }
 
 /// Running totals, accumulated in ray order so they are reproducible too.
@@ -361,7 +404,6 @@ pub fn generate(
         start = end;
     }
     write(pending, &mut stats)?;
-    drop(write);
     let summary = writer.finish()?;
     stats.seconds = t0.elapsed().as_secs_f64();
     Ok(GenReport { stats, summary })
@@ -396,12 +438,20 @@ pub fn measure_bvh(obj: &GenObject, seed: u64, n: usize, min_seconds: f64) -> Bv
     let pass = || -> u64 {
         rays.par_iter()
             .with_min_len(256)
-            .filter(|(o, d)| obj.blas.intersect((*o).into(), (*d).into(), 0.0, f32::INFINITY).is_some())
+            .filter(|(o, d)| {
+                obj.blas
+                    .intersect((*o).into(), (*d).into(), 0.0, f32::INFINITY)
+                    .is_some()
+            })
             .count() as u64
     };
     pass();
     let t0 = Instant::now();
-    let mut m = BvhMeasurement { rays: 0, hits: 0, seconds: 0.0 };
+    let mut m = BvhMeasurement {
+        rays: 0,
+        hits: 0,
+        seconds: 0.0,
+    };
     while m.rays == 0 || m.seconds < min_seconds {
         m.hits += pass();
         m.rays += n as u64;

@@ -271,3 +271,112 @@ impl EntryBatch {
         }
     }
 }
+
+/// Which estimators a render uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EstimatorMode {
+    /// Plain path tracing: `estimator` keys are ignored and no estimator code runs.
+    Off,
+    /// The baked `.nppp` files the scene names.
+    Neural,
+    /// Ground-truth walks through the real object for every instance that names an estimator.
+    Oracle,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum EstimatorLoadError {
+    #[error(transparent)]
+    File(#[from] nppp_estimator::EstimatorFileError),
+    #[error(
+        "{file}: instances[{instance}]: this estimator was trained for mesh \"{trained_mesh}\" (hash {trained_mesh_hash:016x}) with material \"{trained_material}\" (hash {trained_material_hash:016x}), but the instance uses mesh \"{mesh}\" (hash {mesh_hash:016x}) with material \"{material}\" (hash {material_hash:016x})"
+    )]
+    Mismatch {
+        file: std::path::PathBuf,
+        instance: usize,
+        trained_mesh: String,
+        trained_mesh_hash: u64,
+        trained_material: String,
+        trained_material_hash: u64,
+        mesh: String,
+        mesh_hash: u64,
+        material: String,
+        material_hash: u64,
+    },
+}
+
+/// Default internal bounce cap of the oracle (matches `nppp gen`).
+pub const ORACLE_MAX_INTERNAL_BOUNCES: u32 = 64;
+
+/// Margin of the bounding sphere around a mesh (shared with `nppp gen`).
+pub const SPHERE_MARGIN: f32 = 0.01;
+
+impl Estimators {
+    /// Builds the scene's estimators; one file loaded once serves every
+    /// instance that names it. Returns `None` for `Off` or when no instance
+    /// has an estimator, so such renders run no estimator code.
+    pub fn load(scene: &nppp_scene::Scene, mode: EstimatorMode, min_bounces: u32) -> Result<Option<Self>, EstimatorLoadError> {
+        if mode == EstimatorMode::Off || scene.instances.iter().all(|i| i.estimator.is_none()) {
+            return Ok(None);
+        }
+        let mut list: Vec<Estimator> = Vec::new();
+        let mut by_key: std::collections::HashMap<(std::path::PathBuf, usize, usize), u32> = Default::default();
+        let mut per_instance = vec![None; scene.instances.len()];
+        for (ii, inst) in scene.instances.iter().enumerate() {
+            let Some(path) = &inst.estimator else { continue };
+            let key = (path.clone(), inst.mesh, inst.material);
+            if let Some(&e) = by_key.get(&key) {
+                per_instance[ii] = Some(e);
+                continue;
+            }
+            let mesh = &scene.meshes[inst.mesh];
+            let est = match mode {
+                EstimatorMode::Oracle => Estimator {
+                    model: EstimatorModel::Oracle {
+                        mesh: inst.mesh,
+                        surface: crate::scene_data::surface_of(&scene.materials[inst.material]),
+                        max_internal_bounces: ORACLE_MAX_INTERNAL_BOUNCES,
+                    },
+                    sphere: BoundingSphere::around(&mesh.positions, SPHERE_MARGIN),
+                },
+                _ => {
+                    let baked = nppp_estimator::BakedEstimator::load(path)?;
+                    let mesh_hash = nppp_scene::mesh_content_hash(mesh);
+                    let material_hash = nppp_scene::material_content_hash(&scene.materials[inst.material]);
+                    if baked.meta.mesh_hash != mesh_hash || baked.meta.material_hash != material_hash {
+                        return Err(EstimatorLoadError::Mismatch {
+                            file: path.clone(),
+                            instance: ii,
+                            trained_mesh: baked.meta.mesh_name.clone(),
+                            trained_mesh_hash: baked.meta.mesh_hash,
+                            trained_material: baked.meta.material_name.clone(),
+                            trained_material_hash: baked.meta.material_hash,
+                            mesh: scene.mesh_names[inst.mesh].clone(),
+                            mesh_hash,
+                            material: scene.material_names[inst.material].clone(),
+                            material_hash,
+                        });
+                    }
+                    let sphere = baked.meta.sphere;
+                    let sampler = EstimatorSampler::try_new(baked)?;
+                    Estimator { model: EstimatorModel::Neural { sampler, decoder: None }, sphere }
+                }
+            };
+            list.push(est);
+            let id = (list.len() - 1) as u32;
+            by_key.insert(key, id);
+            per_instance[ii] = Some(id);
+        }
+        Ok(Some(Self { list, per_instance, min_bounces }))
+    }
+
+    /// Bytes of estimator data shared by all instances.
+    pub fn memory_bytes(&self) -> usize {
+        self.list
+            .iter()
+            .map(|e| match &e.model {
+                EstimatorModel::Neural { sampler, .. } => sampler.memory_bytes(),
+                EstimatorModel::Oracle { .. } => 0,
+            })
+            .sum()
+    }
+}

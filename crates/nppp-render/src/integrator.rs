@@ -126,7 +126,7 @@ impl Wavefront {
     /// Runs every path in `self.paths` to completion, adding each to its slot in `film`.
     pub fn run(&mut self, scene: &RenderScene, settings: &IntegratorSettings, film: &mut [PixelSum]) {
         while !self.paths.is_empty() {
-            self.intersect(scene);
+            self.intersect(scene, settings);
             self.answer_estimators(scene, settings);
             let mut w = 0;
             for r in 0..self.paths.len() {
@@ -150,11 +150,13 @@ impl Wavefront {
         }
     }
 
-    fn intersect(&mut self, scene: &RenderScene) {
+    fn intersect(&mut self, scene: &RenderScene, settings: &IntegratorSettings) {
         self.meets.clear();
         let stats = &mut self.estimator_stats;
+        let m = settings.max_bounces;
         self.meets.extend(self.paths.iter().map(|p| match &scene.estimators {
-            Some(est) if p.depth >= est.min_bounces => est.intersect(&scene.accel, p.origin, p.dir, p.skip_instance, stats),
+            // A path at depth M only looks for emission: the real mesh serves (and P >= M never estimates).
+            Some(est) if p.depth >= est.min_bounces && p.depth < m => est.intersect(&scene.accel, p.origin, p.dir, p.skip_instance, stats),
             _ => scene.accel.intersect_skipping(p.origin, p.dir, f32::INFINITY, p.skip_instance).map_or(Meet::Nothing, Meet::Surface),
         }));
     }

@@ -28,6 +28,7 @@ pub struct RenderStats {
     pub samples: u64,
     /// Samples dropped because their radiance was NaN or infinite.
     pub dropped_samples: u64,
+    pub estimators: crate::estimator::EstimatorStats,
 }
 
 impl RenderStats {
@@ -50,12 +51,13 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
     bar.enable_steady_tick(Duration::from_millis(250));
     let settings = IntegratorSettings { max_bounces: opts.max_bounces, seed: opts.seed };
     let start = Instant::now();
-    let results: Vec<((u32, u32), Vec<PixelSum>)> = tiles
+    let results: Vec<((u32, u32), Vec<PixelSum>, crate::estimator::EstimatorStats)> = tiles
         .par_iter()
         .map_init(Wavefront::default, |wf, &(x0, y0)| {
             let tw = TILE.min(w - x0);
             let th = TILE.min(h - y0);
             let mut film = vec![PixelSum::default(); (tw * th) as usize];
+            wf.estimator_stats = Default::default();
             let px = (tw * th) as usize;
             let spp_per_batch = (BATCH_PATHS / px).max(1) as u32;
             let mut s0 = 0;
@@ -78,14 +80,16 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
                 bar.inc(px as u64 * (s1 - s0) as u64);
                 s0 = s1;
             }
-            ((x0, y0), film)
+            ((x0, y0), film, wf.estimator_stats)
         })
         .collect();
     bar.finish_and_clear();
     let seconds = start.elapsed().as_secs_f64();
     let mut img = Image::new(w, h);
     let mut dropped = 0u64;
-    for ((x0, y0), film) in results {
+    let mut est = crate::estimator::EstimatorStats::default();
+    for ((x0, y0), film, st) in results {
+        est.merge(&st);
         let tw = TILE.min(w - x0);
         for (i, p) in film.iter().enumerate() {
             let (x, y) = (x0 + i as u32 % tw, y0 + i as u32 / tw);
@@ -93,5 +97,5 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
             dropped += p.dropped as u64;
         }
     }
-    (img, RenderStats { seconds, samples: total, dropped_samples: dropped })
+    (img, RenderStats { seconds, samples: total, dropped_samples: dropped, estimators: est })
 }

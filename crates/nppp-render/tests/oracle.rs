@@ -1,0 +1,106 @@
+//! The estimator integration, checked independently of any network: the
+//! oracle estimator answers each entry by tracing the object alone, so where
+//! no other geometry enters the object's sphere, PT + oracle must match plain
+//! PT within noise, at every P.
+
+mod common;
+use common::*;
+use nppp_render::estimator::{EstimatorMode, Estimators};
+use nppp_render::{RenderOptions, RenderScene};
+
+/// A closed diffuse room lit from above, with `object` floating in the middle (clear of every wall).
+fn room(object_mesh: &str, object_material: &str, extra: &str) -> String {
+    format!(
+        r#"{{
+  "camera": {{"position": [0, 0, -4.5], "look_at": [0, 0, 0], "fov_y_deg": 50, "width": 32, "height": 32}},
+  "materials": {{"white": {{"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}}, "red": {{"type": "diffuse", "albedo": [0.7, 0.1, 0.1]}},
+                 "lamp": {{"type": "emitter", "radiance": [8, 8, 8]}}, "obj": {object_material}}},
+  "meshes": {{
+    "room": {{"box": {{"min": [-3, -3, -6], "max": [3, 3, 3]}}}},
+    "light": {{"quad": [[-0.8, 2.95, -0.8], [0.8, 2.95, -0.8], [0.8, 2.95, 0.8], [-0.8, 2.95, 0.8]]}},
+    "object": {object_mesh} {extra}
+  }},
+  "instances": [
+    {{"mesh": "room", "material": "white"}},
+    {{"mesh": "light", "material": "lamp"}},
+    {{"mesh": "object", "material": "obj", "transform": {{"scale": 1.2, "rotate": {{"axis": [1, 1, 0], "deg": 35}}}}, "estimator": "no-file-needed-for-the-oracle.nppp"}}
+  ]
+}}"#
+    )
+}
+
+fn render_mode(json: &str, mode: EstimatorMode, p: u32, spp: u32, m: u32, seed: u64) -> (nppp_render::Image, nppp_render::RenderStats) {
+    let scene = scene_from_str(json);
+    let mut rs = RenderScene::new(&scene);
+    rs.estimators = Estimators::load(&scene, mode, p).unwrap();
+    nppp_render::render(&rs, &RenderOptions { spp, max_bounces: m, seed, progress: false })
+}
+
+fn rel_diff(a: [f64; 3], b: [f64; 3]) -> f64 {
+    let s: f64 = a.iter().sum::<f64>();
+    let t: f64 = b.iter().sum::<f64>();
+    (s - t).abs() / t.max(1e-9)
+}
+
+const KNOT: &str = r#"{"procedural": {"type": "torus_knot", "p": 2, "q": 3, "tube_radius": 0.45, "segments": 128, "sides": 12}}"#;
+
+#[test]
+fn oracle_matches_path_tracing_at_every_p() {
+    let json = room(KNOT, r#"{"type": "diffuse", "albedo": [0.9, 0.8, 0.6]}"#, "");
+    let (pt, _) = render_mode(&json, EstimatorMode::Off, 0, 512, 5, 1);
+    for p in [0, 1, 2] {
+        let (or, st) = render_mode(&json, EstimatorMode::Oracle, p, 512, 5, 2);
+        assert!(st.estimators.entries > 1000, "P={p}: the estimator was barely used ({} entries)", st.estimators.entries);
+        assert_eq!(st.estimators.ambiguous, 0, "no geometry enters the sphere here");
+        let d = rel_diff(or.mean(), pt.mean());
+        assert!(d < 0.015, "P={p}: image mean differs by {:.2}% (oracle {:?} vs PT {:?})", d * 100.0, or.mean(), pt.mean());
+        // The object's own pixels (centre of the image), where the estimator matters most.
+        let centre = |img: &nppp_render::Image| {
+            let mut s = 0.0f64;
+            for y in 10..22 {
+                for x in 10..22 {
+                    s += img.get(x, y).iter().map(|v| *v as f64).sum::<f64>();
+                }
+            }
+            s
+        };
+        let dc = (centre(&or) - centre(&pt)).abs() / centre(&pt);
+        assert!(dc < 0.03, "P={p}: object region differs by {:.2}%", dc * 100.0);
+    }
+}
+
+#[test]
+fn light_seen_only_through_a_glass_object_counts_fully() {
+    // The camera sees the lamp only through the glass ball: with P = 0, every
+    // camera ray that enters the sphere leaves through the estimator, and the
+    // lamp it then hits must count with MIS weight 1.
+    let json = room(
+        r#"{"icosphere": {"center": [0, 0, 0], "radius": 1, "subdivisions": 4}}"#,
+        r#"{"type": "dielectric", "ior": 1.5}"#,
+        r#", "backlight": {"quad": [[-0.5, -0.5, 2.9], [-0.5, 0.5, 2.9], [0.5, 0.5, 2.9], [0.5, -0.5, 2.9]]}"#,
+    );
+    let json = json.replace(
+        r#"{"mesh": "light", "material": "lamp"},"#,
+        r#"{"mesh": "light", "material": "lamp"}, {"mesh": "backlight", "material": "lamp"},"#,
+    );
+    let (pt, _) = render_mode(&json, EstimatorMode::Off, 0, 256, 8, 3);
+    let (or, st) = render_mode(&json, EstimatorMode::Oracle, 0, 256, 8, 4);
+    assert!(st.estimators.entries > 0);
+    let d = rel_diff(or.mean(), pt.mean());
+    assert!(d < 0.02, "image mean differs by {:.2}%: oracle {:?} PT {:?}", d * 100.0, or.mean(), pt.mean());
+}
+
+#[test]
+fn scene_without_estimators_runs_no_estimator_code() {
+    let scene = nppp_scene::load_scene(&repo_root().join("tests/conformance/camera_pixel_grid.json")).unwrap();
+    assert!(Estimators::load(&scene, EstimatorMode::Neural, 0).unwrap().is_none());
+    let json = room(KNOT, r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#, "");
+    assert!(Estimators::load(&scene_from_str(&json), EstimatorMode::Off, 0).unwrap().is_none());
+}
+
+#[test]
+fn p_at_least_m_never_uses_the_estimator() {
+    let json = room(KNOT, r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#, "");
+    let (_, st) = render_mode(&json, EstimatorMode::Oracle, 3, 4, 3, 1);
+    assert_eq!(st.estimators.entries, 0);
+}
