@@ -10,7 +10,20 @@ SCENE ?= data/scenes/cornell-box.json
 SPP ?= 64
 OUT ?= out
 
-.PHONY: all build render test bench clean help
+# The default object's estimator: data -> model -> baked file. The baked file
+# is committed, so a fresh clone renders with it at once; `make bake` (or
+# data/train) rebuilds the chain when its inputs change.
+OBJECT_SCENE := data/scenes/cornell-box.json
+OBJECT_INSTANCE := 6
+DATA := $(OUT)/data/cornell-knot.nppd
+MODEL := $(OUT)/model/cornell-knot
+ESTIMATOR := models/cornell-knot.nppp
+GEN_FLAGS ?= --rays 20000 --k 64 --seed 1
+TRAIN_FLAGS ?= --minutes 8 --seed 1
+BAKE_FLAGS ?= --latent-grid 16 --mask-grid 32 --bits 8
+P ?= 2
+
+.PHONY: all build render test bench clean help data train bake
 all: render
 
 help:
@@ -24,8 +37,23 @@ build:
 # Phony on purpose: cargo decides what is stale.
 $(NPPP): build
 
-render: build
-	$(NPPP) render $(SCENE) --spp $(SPP) --out $(OUT)/pt.exr --png $(OUT)/pt.png
+data: $(DATA)
+$(DATA): $(OBJECT_SCENE) | build
+	$(NPPP) gen --scene $(OBJECT_SCENE) --instance $(OBJECT_INSTANCE) $(GEN_FLAGS) --out $@
+
+train: $(MODEL)/model.bpk
+$(MODEL)/model.bpk: $(DATA) | build
+	$(NPPP) train --data $(DATA) --out $(MODEL) $(TRAIN_FLAGS)
+
+bake: $(ESTIMATOR)
+$(ESTIMATOR): $(MODEL)/model.bpk | build
+	$(NPPP) bake --model $(MODEL) $(BAKE_FLAGS) --out $@
+
+# Renders the default scene twice: plain path tracing, and path tracing with
+# the committed estimator (order-only: a fresh clone does not retrain).
+render: build | $(ESTIMATOR)
+	$(NPPP) render $(SCENE) --spp $(SPP) --estimators off --out $(OUT)/pt.exr --png $(OUT)/pt.png
+	$(NPPP) render $(SCENE) --spp $(SPP) --estimators neural --min-bounces $(P) --out $(OUT)/nppp.exr --png $(OUT)/nppp.png
 
 test:
 	cargo test --workspace

@@ -23,6 +23,15 @@ enum Command {
     Render(render_cmd::RenderArgs),
     /// Generate estimator training data: path-trace one object alone.
     Gen(gen_cmd::GenArgs),
+    /// Train an estimator (Burn) on data from `nppp gen`.
+    Train(nppp_nn::TrainOptions),
+    /// Bake a trained model into a quantized `.nppp` estimator.
+    Bake(nppp_nn::BakeOptions),
+    /// Print what a `.nppp` estimator holds and its memory.
+    Info {
+        /// The `.nppp` file.
+        file: std::path::PathBuf,
+    },
 }
 
 fn main() {
@@ -41,5 +50,20 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => render_cmd::run(&a),
         Command::Gen(a) => gen_cmd::run(&a),
+        Command::Train(o) => {
+            let r = nppp_nn::train(&o)?;
+            eprintln!("{r:#?}");
+            Ok(())
+        }
+        Command::Bake(o) => {
+            let r = nppp_nn::bake(&o)?;
+            eprintln!("{r:#?}");
+            Ok(())
+        }
+        Command::Info { file } => {
+            let b = nppp_estimator::BakedEstimator::load(&file)?;
+            println!("{}", b.describe());
+            Ok(())
+        }
     }
 }

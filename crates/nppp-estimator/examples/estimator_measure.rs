@@ -115,6 +115,21 @@ fn grid_speed() {
     }
     black_box(&outs);
     let dt = t.elapsed().as_secs_f64();
+    let rows = 1 << 16;
+    let inputs: Vec<f32> = (0..rows * 32).map(|_| rng.normal()).collect();
+    let mut y = vec![0.0f32; rows * EXIT_FEATURES];
+    let t = Instant::now();
+    s.baked().decoder.forward_batch(&inputs, &mut y);
+    let d_ref = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    s.forward_batch(&inputs, &mut y);
+    let d_fast = t.elapsed().as_secs_f64();
+    black_box(&y);
+    println!(
+        "decoder only: Mlp::forward_batch {:.2} M rows/s, EstimatorSampler::forward_batch {:.2} M rows/s",
+        rows as f64 / d_ref / 1e6,
+        rows as f64 / d_fast / 1e6
+    );
     println!(
         "sample (32->64->64->13 decoder): {:.2} M samples/s, {}",
         n_s as f64 / dt / 1e6,

@@ -175,6 +175,24 @@ impl EstimatorSampler {
         f
     }
 
+    /// The decoder on `rows` rows of `[z, r]` stored contiguously, giving
+    /// `EXIT_FEATURES` standardized features per row: `Mlp::forward_batch`
+    /// with the faster layer order (equal within float rounding). For a
+    /// wavefront that fills the decoder inputs itself.
+    pub fn forward_batch(&self, input: &[f32], output: &mut [f32]) {
+        let mut scratch = SamplerScratch::new(self);
+        self.forward_batch_with(input, output, &mut scratch);
+    }
+
+    pub fn forward_batch_with(&self, input: &[f32], output: &mut [f32], scratch: &mut SamplerScratch) {
+        let n = self.latent_dim + self.noise_dim;
+        for (x, y) in input.chunks_exact(n).zip(output.chunks_exact_mut(EXIT_FEATURES)) {
+            scratch.mlp[..n].copy_from_slice(x);
+            let at = forward_fast(&self.layers, &mut scratch.mlp);
+            y.copy_from_slice(&scratch.mlp[at..at + EXIT_FEATURES]);
+        }
+    }
+
     /// [`Self::sample`] for a ray given in the unit sphere's frame; `None`
     /// when its line misses the sphere. The mask is not consulted.
     pub fn sample_ray(&self, ray: &Ray, r: &[f32], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) -> Option<Exit> {
@@ -270,6 +288,12 @@ mod tests {
                 assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{fast:?} vs {f:?}");
             }
         }
+        let inputs: Vec<f32> = (0..7 * 50).map(|k| ((k * 31 % 23) as f32 - 11.0) / 5.0).collect();
+        let mut a = vec![0.0f32; 13 * 50];
+        let mut b = vec![0.0f32; 13 * 50];
+        est.decoder.forward_batch(&inputs, &mut a);
+        s.forward_batch(&inputs, &mut b);
+        assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 1e-5 * (1.0 + x.abs())));
         // Batch = loop.
         let pairs = [pair, SpherePair([0.0, 0.0, 1.0, 0.5]), pair];
         let rs = [r, [0.0; 3], [1.0, 1.0, 1.0]].concat();

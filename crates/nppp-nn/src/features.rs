@@ -10,18 +10,21 @@
 use nppp_geom::SpherePair;
 use std::f32::consts::{PI, TAU};
 
-/// Fourier frequencies per angle; a few octaves let a plain ReLU MLP
-/// resolve sharp features (mask boundaries, caustics) without a huge width.
-pub const FOURIER_FREQS: usize = 3;
+/// Fourier frequencies (octaves) per angle: a plain ReLU MLP is biased
+/// towards smooth functions, and these let it resolve sharp features (mask
+/// boundaries of thin parts, caustics). Integer frequencies keep v periodic.
+/// Nothing finer than 8 cycles: a 32^4 grid could not hold it anyway.
+pub const FOURIER_FREQS: [f32; 4] = [1.0, 2.0, 4.0, 8.0];
 
 /// Features per point: a = 2u - 1 (= cos theta), the point on the sphere
-/// (x, y), then sin/cos of v and of a at `FOURIER_FREQS` frequencies.
-const PER_POINT: usize = 3 + 4 * FOURIER_FREQS;
+/// (x, y), then sin/cos of v and of a at each of `FOURIER_FREQS`.
+const PER_POINT: usize = 3 + 4 * FOURIER_FREQS.len();
 
-/// Length of the feature vector: both points, plus the chord vector (3) and
-/// the chord's half length (1), which carry the ray's direction and impact
-/// parameter directly instead of making the network derive them.
-pub const INPUT_FEATURES: usize = 2 * PER_POINT + 4;
+/// Length of the feature vector: both points, plus the chord vector (3),
+/// the chord's half length (1) and the line's Plucker moment (3), which
+/// carry the ray's direction and position directly instead of making the
+/// network derive them.
+pub const INPUT_FEATURES: usize = 2 * PER_POINT + 7;
 
 fn point_features(u: f32, v: f32, out: &mut [f32]) -> [f32; 3] {
     let a = (2.0 * u - 1.0).clamp(-1.0, 1.0);
@@ -32,10 +35,9 @@ fn point_features(u: f32, v: f32, out: &mut [f32]) -> [f32; 3] {
     out[1] = p[0];
     out[2] = p[1];
     let mut o = 3;
-    for f in 1..=FOURIER_FREQS {
-        // Integer frequencies keep v periodic; u needs no periodicity.
-        let (s1, c1) = (TAU * f as f32 * v).sin_cos();
-        let (s2, c2) = (PI * f as f32 * a).sin_cos();
+    for f in FOURIER_FREQS {
+        let (s1, c1) = (TAU * f * v).sin_cos();
+        let (s2, c2) = (PI * f * a).sin_cos();
         out[o..o + 4].copy_from_slice(&[s1, c1, s2, c2]);
         o += 4;
     }
@@ -54,6 +56,10 @@ pub fn ray_features_into(pair: &SpherePair, out: &mut [f32]) {
     out[o + 1] = 0.5 * d[1];
     out[o + 2] = 0.5 * d[2];
     out[o + 3] = 0.5 * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    // Moment of the line through p1 and p2 (|p1 x p2| <= 1).
+    out[o + 4] = p1[1] * p2[2] - p1[2] * p2[1];
+    out[o + 5] = p1[2] * p2[0] - p1[0] * p2[2];
+    out[o + 6] = p1[0] * p2[1] - p1[1] * p2[0];
 }
 
 /// Features of many rays, row-major `[pairs.len()][INPUT_FEATURES]`.
@@ -71,8 +77,8 @@ mod tests {
 
     #[test]
     fn features_are_bounded_and_continuous_across_the_v_seam() {
-        let a = SpherePair([0.3, 0.9999, 0.7, 0.4]);
-        let b = SpherePair([0.3, 0.0001, 0.7, 0.4]);
+        let a = SpherePair([0.3, 0.99999, 0.7, 0.4]);
+        let b = SpherePair([0.3, 0.00001, 0.7, 0.4]);
         let fa = ray_features(&[a]);
         let fb = ray_features(&[b]);
         assert_eq!(fa.len(), INPUT_FEATURES);

@@ -44,7 +44,7 @@ pub struct ModelConfig {
     pub mask_layers: usize,
     /// Length of the input feature vector; checked on load so that a model
     /// trained with another feature map is refused rather than misread.
-    #[config(default = 34)]
+    #[config(default = 45)]
     pub input_features: usize,
 }
 

@@ -109,6 +109,9 @@ pub struct TrainOptions {
     /// Decoder hidden width.
     #[arg(long)]
     pub decoder_width: Option<usize>,
+    /// Mask network hidden width.
+    #[arg(long)]
+    pub mask_width: Option<usize>,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -137,6 +140,7 @@ impl TrainOptions {
             latent_dim: None,
             encoder_width: None,
             decoder_width: None,
+            mask_width: None,
             quiet: false,
         }
     }
@@ -348,6 +352,7 @@ fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
         clash("latent-dim", s(opts.latent_dim), cfg.model.latent_dim.to_string())?;
         clash("encoder-width", s(opts.encoder_width), cfg.model.encoder_width.to_string())?;
         clash("decoder-width", s(opts.decoder_width), cfg.model.decoder_width.to_string())?;
+        clash("mask-width", s(opts.mask_width), cfg.model.mask_width.to_string())?;
         cfg
     } else {
         if checkpoint_dir(&opts.out).is_some() {
@@ -365,6 +370,9 @@ fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
         }
         if let Some(v) = opts.decoder_width {
             model.decoder_width = v;
+        }
+        if let Some(v) = opts.mask_width {
+            model.mask_width = v;
         }
         let mut cfg = TrainConfig::new(model);
         if let Some(v) = opts.batch {
@@ -871,7 +879,7 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
             save_checkpoint(out, &cfg, &model, &optim, &state)?;
             last_ckpt = Instant::now();
             append_log(&log_path, &row)?;
-            pb.println(format!(
+            let line = format!(
                 "epoch {:.2}: train {:.4}  held-out chamfer {:.4}  mask acc {:.2}%  throughput err {:.2}% (rms {:.2}%, bias {:+.2}%, floor {:.2}%)",
                 state.step as f64 / spe as f64,
                 avg[0],
@@ -881,7 +889,14 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
                 100.0 * metrics.throughput_rms_error,
                 100.0 * metrics.throughput_bias,
                 100.0 * metrics.throughput_noise_floor,
-            ));
+            );
+            // A hidden bar (no terminal, or --quiet) prints nothing: then the
+            // epoch lines go to stderr directly unless --quiet.
+            if !pb.is_hidden() {
+                pb.println(line);
+            } else if !opts.quiet {
+                eprintln!("{line}");
+            }
             if over_time && !last {
                 stopped_by_time = true;
                 break;
