@@ -2,12 +2,14 @@
 # Include from the top Makefile:   include tools/mitsuba/mitsuba.mk
 # Targets (run from the repository root):
 #   make mitsuba-ref SCENE=data/scenes/x.json OUT=out/x.mitsuba.exr [SPP=256] [VARIANT=scalar_rgb|llvm_ad_rgb]
-#                    [MAX_BOUNCES=M] [SEED=S] [THREADS=T] [TIME=1]
+#                    [MAX_BOUNCES=M] [SEED=S] [THREADS=T] [TIME=1] [MESH_OBJ="name=file.obj ..."]
+#                    an OUT not ending in .exr is a folder: OUT/<scene name>.mitsuba.exr
 #   make mitsuba-compare A=a.exr B=reference.exr [TOL_MEAN=0.02]
 #   make mitsuba-conformance [VARIANT=...]     camera convention check against shared/conformance
 #   make mitsuba-venv                          just create .venv-mitsuba
 #   make mitsuba-llvm                          install Debian's libllvm19 (for VARIANT=llvm_ad_rgb)
-# SPP, MAX_BOUNCES and SEED default to the scene's render values; THREADS to all cores.
+# SPP, MAX_BOUNCES and SEED default to the scene's render values (unless the including
+# Makefile sets them, e.g. SPP ?= 64); THREADS to all cores.
 
 # keep whatever default goal the including Makefile has
 MITSUBA_SAVED_GOAL := $(.DEFAULT_GOAL)
@@ -46,7 +48,8 @@ mitsuba-ref: $(MITSUBA_STAMP) $(if $(filter llvm%,$(MITSUBA_VARIANT)),mitsuba-ll
 	@test -n "$(OUT)" || { echo "mitsuba-ref: OUT=file.exr is required"; exit 2; }
 	$(MITSUBA_LLVM_ENV) $(MITSUBA_PY) $(MITSUBA_DIR)/render_mitsuba.py "$(SCENE)" --out "$(OUT)" \
 	  --variant $(MITSUBA_VARIANT) $(if $(SPP),--spp $(SPP)) $(if $(MAX_BOUNCES),--max-bounces $(MAX_BOUNCES)) \
-	  $(if $(SEED),--seed $(SEED)) $(if $(THREADS),--threads $(THREADS)) $(if $(filter-out 0,$(TIME)),--time)
+	  $(if $(SEED),--seed $(SEED)) $(if $(THREADS),--threads $(THREADS)) $(if $(filter-out 0,$(TIME)),--time) \
+	  $(foreach m,$(MESH_OBJ),--mesh-obj "$(m)")
 
 mitsuba-compare: $(MITSUBA_STAMP)
 	@test -n "$(A)" -a -n "$(B)" || { echo "usage: make mitsuba-compare A=test.exr B=reference.exr [TOL_MEAN=0.02]"; exit 2; }

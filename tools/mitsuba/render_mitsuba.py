@@ -179,7 +179,9 @@ def render(scene, variant="scalar_rgb", spp=None, max_bounces=None, seed=None, t
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene", help="scene JSON (shared/SCENE_FORMAT.md)")
-    ap.add_argument("--out", required=True, help="output OpenEXR (linear RGB float32)")
+    ap.add_argument("--out", required=True,
+                    help="output OpenEXR (linear RGB float32); a path not ending in .exr is a "
+                         "folder and gets FOLDER/<scene name>.mitsuba.exr")
     ap.add_argument("--spp", type=int, help="samples per pixel (default: scene render.spp, else 64)")
     ap.add_argument("--variant", default="scalar_rgb", choices=VARIANTS)
     ap.add_argument("--max-bounces", type=int,
@@ -189,7 +191,20 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, help="CPU threads (default: all cores)")
     ap.add_argument("--time", action="store_true",
                     help="print samples/s of the render alone (scene load and JIT warm-up excluded)")
+    ap.add_argument("--mesh-obj", action="append", default=[], metavar="NAME=FILE.obj",
+                    help="render meshes.NAME from this OBJ instead of its own source (for mesh "
+                         "sources this tool does not know, e.g. a procedural mesh the Rust side "
+                         "exported); repeatable")
     a = ap.parse_args(argv)
+    mesh_obj = {}
+    for item in a.mesh_obj:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            ap.error(f"--mesh-obj expects NAME=FILE.obj, got {item!r}")
+        mesh_obj[name] = path
+    if os.path.isdir(a.out) or not a.out.lower().endswith(".exr"):
+        stem = os.path.splitext(os.path.basename(a.scene))[0]
+        a.out = os.path.join(a.out, f"{stem}.mitsuba.exr")
     for name in ("spp", "threads"):
         v = getattr(a, name)
         if v is not None and v < 1:
@@ -197,7 +212,9 @@ def main(argv=None):
     if a.max_bounces is not None and a.max_bounces < 0:
         ap.error("--max-bounces must be >= 0")
     try:
-        scene = load_scene(a.scene)
+        scene = load_scene(a.scene, mesh_obj)
+        for name, path in mesh_obj.items():
+            print(f"note: meshes.{name} rendered from {path} (--mesh-obj)")
         arr, info = render(scene, a.variant, a.spp, a.max_bounces, a.seed, a.threads, a.time)
     except SceneError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -488,7 +488,9 @@ def parse_transform(t, path):
 # scene
 
 
-def load_scene(path):
+def load_scene(path, mesh_obj=None):
+    """mesh_obj: optional {mesh name: OBJ path (relative to the working directory)} that
+    replaces those meshes' sources, e.g. a procedural mesh exported by the Rust side."""
     try:
         with open(path, "r", encoding="utf-8") as fh:
             text = fh.read()
@@ -499,6 +501,16 @@ def load_scene(path):
             SceneError(f"{path}: non-finite number {c} in JSON")))
     except json.JSONDecodeError as e:
         raise SceneError(f"{path}: invalid JSON: {e}")
+    if mesh_obj:
+        meshes = doc.get("meshes") if isinstance(doc, dict) else None
+        for name, objpath in mesh_obj.items():
+            if not isinstance(meshes, dict) or name not in meshes:
+                raise SceneError(f"--mesh-obj {name}={objpath}: the scene has no mesh {name!r}")
+            m = meshes[name]
+            smooth = m.get("smooth", False) if isinstance(m, dict) else False
+            meshes[name] = {"obj": os.path.abspath(objpath)}
+            if smooth is True and "obj" in m:
+                meshes[name]["smooth"] = True
     return parse_scene(doc, os.path.dirname(os.path.abspath(path)), path)
 
 

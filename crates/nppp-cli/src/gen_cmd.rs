@@ -143,7 +143,9 @@ pub fn run(a: &GenArgs) -> Result<()> {
         compress: !a.no_compress,
         ..WriterOptions::default()
     };
+    let cpu0 = process_cpu_seconds();
     let report = generate(&obj, &cfg, &a.out, options, &mut progress);
+    let gen_cpu = cpu_since(cpu0);
     bar.finish_and_clear();
     let report = report?;
     let (st, sum) = (&report.stats, &report.summary);
@@ -172,6 +174,13 @@ pub fn run(a: &GenArgs) -> Result<()> {
         st.rays_per_second(),
         st.bvh_queries_per_second() / 1e6
     );
+    if let Some(cpu) = gen_cpu {
+        println!(
+            "  CPU time    {cpu:.2}s: {:.3} M exits per CPU-second ({:.2} of {threads} threads busy on average)",
+            st.exits as f64 / cpu / 1e6,
+            cpu / st.seconds.max(1e-9)
+        );
+    }
     println!(
         "  file        {} in {} chunks, {:.2} bytes/exit ({:.2} before compression)",
         human_bytes(sum.file_bytes),
@@ -195,21 +204,51 @@ pub fn run(a: &GenArgs) -> Result<()> {
         );
     }
     if a.measure_bvh {
+        let cpu0 = process_cpu_seconds();
         let m = measure_bvh(&obj, a.seed ^ 0x5eed_b7a5, 1 << 18, 2.0);
-        let walk = st.bvh_queries_per_second();
+        let bvh_cpu = cpu_since(cpu0);
+        let queries = (st.exits + st.bounce_sum + st.rays) as f64;
         println!(
             "  bare BVH    {:.2} M closest-hit rays/s on random chords ({:.1}% hit, {threads} threads)",
             m.rays_per_second() / 1e6,
             100.0 * m.hits as f64 / m.rays.max(1) as f64
         );
+        // Per CPU-second when the OS tells us, so that other load on the
+        // machine during one of the two phases does not skew the ratio.
+        let (walk_rate, bvh_rate, basis) = match (gen_cpu, bvh_cpu) {
+            (Some(g), Some(b)) if g > 0.0 && b > 0.0 => {
+                (queries / g, m.rays as f64 / b, "per CPU-second")
+            }
+            _ => (
+                st.bvh_queries_per_second(),
+                m.rays_per_second(),
+                "per second",
+            ),
+        };
         println!(
-            "  ratio       walks make {:.2} M queries/s = {:.0}% of the bare BVH rate ({:.2} queries per exit: entry hit + bounces)",
-            walk / 1e6,
-            100.0 * walk / m.rays_per_second(),
-            (st.exits + st.bounce_sum + st.rays) as f64 / st.exits.max(1) as f64
+            "  ratio       walks: {:.2} M queries {basis} = {:.0}% of the bare BVH's {:.2} M ({:.2} queries per exit: entry hit + bounces)",
+            walk_rate / 1e6,
+            100.0 * walk_rate / bvh_rate,
+            bvh_rate / 1e6,
+            queries / st.exits.max(1) as f64
         );
     }
     Ok(())
+}
+
+/// User + system CPU time of this process (Linux `/proc`; `None` elsewhere).
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name, which is in parentheses and may contain spaces.
+    let rest = stat.get(stat.rfind(')')? + 1..)?;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the file, in USER_HZ (100 on Linux) ticks.
+    let ticks = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+fn cpu_since(start: Option<f64>) -> Option<f64> {
+    Some(process_cpu_seconds()? - start?)
 }
 
 fn progress_bar(rays: u64, quiet: bool) -> ProgressBar {

@@ -309,8 +309,9 @@ impl Columns {
     }
 }
 
-/// Splits a payload back into records; `None` names nothing, the caller
-/// reports "payload does not match its ray and hit counts".
+/// Splits a payload back into records. Every column's size is checked
+/// against the payload before any record is allocated, so a damaged count
+/// cannot ask for more memory than the (bounded) payload justifies.
 fn decode_payload(p: &[u8], rays: u32, hits: u32, k: u32, bw: usize) -> Result<Vec<RayRecord>, String> {
     let rays = rays as usize;
     let n_exits = hits as usize * k as usize;

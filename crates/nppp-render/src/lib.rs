@@ -9,6 +9,7 @@ pub mod datagen;
 pub mod image_io;
 pub mod integrator;
 pub mod lights;
+pub mod metrics;
 pub mod object_walk;
 pub mod render;
 pub mod scene_data;
