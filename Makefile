@@ -18,8 +18,8 @@ OBJECT_INSTANCE := 6
 DATA := $(OUT)/data/cornell-knot.nppd
 MODEL := $(OUT)/model/cornell-knot
 ESTIMATOR := models/cornell-knot.nppp
-GEN_FLAGS ?= --rays 20000 --k 64 --seed 1
-TRAIN_FLAGS ?= --minutes 8 --seed 1
+GEN_FLAGS ?= --rays 200000 --k 64 --seed 1
+TRAIN_FLAGS ?= --minutes 8 --epochs 12 --seed 1
 BAKE_FLAGS ?= --latent-grid 16 --mask-grid 32 --bits 8
 P ?= 2
 

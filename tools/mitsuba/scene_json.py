@@ -428,7 +428,8 @@ def parse_mesh(name, m, scene_dir):
     if unknown:
         raise SceneError(f"{path}.{unknown[0]}: unknown mesh key or mesh source "
                          f"(this reference renderer knows {', '.join(MESH_SOURCES)} and 'smooth'); "
-                         "add support in tools/mitsuba/scene_json.py before rendering it")
+                         "export the mesh to OBJ and pass --mesh-obj NAME=FILE.obj (make: MESH_OBJ=NAME=FILE.obj), "
+                         "or add the source to tools/mitsuba/scene_json.py")
     if len(sources) != 1:
         raise SceneError(f"{path}: needs exactly one mesh source out of {', '.join(MESH_SOURCES)}, "
                          f"got {sources or 'none'}")

@@ -2,6 +2,7 @@
 //! pipeline (gen, train, bake, render, bench) or a utility (info, mesh).
 
 mod gen_cmd;
+mod mesh_cmd;
 mod render_cmd;
 
 use anyhow::Result;
@@ -27,6 +28,8 @@ enum Command {
     Train(nppp_nn::TrainOptions),
     /// Bake a trained model into a quantized `.nppp` estimator.
     Bake(nppp_nn::BakeOptions),
+    /// Write a scene's mesh (e.g. a procedural object) as an OBJ.
+    Mesh(mesh_cmd::MeshArgs),
     /// Print what a `.nppp` estimator holds and its memory.
     Info {
         /// The `.nppp` file.
@@ -60,6 +63,7 @@ fn run(cli: Cli) -> Result<()> {
             eprintln!("{r:#?}");
             Ok(())
         }
+        Command::Mesh(a) => mesh_cmd::run(&a),
         Command::Info { file } => {
             let b = nppp_estimator::BakedEstimator::load(&file)?;
             println!("{}", b.describe());

@@ -43,20 +43,27 @@ const SQRT_EPS: f32 = 1e-6;
 /// `d_xy` is the `[B, n, m]` squared-distance matrix already computed for
 /// Chamfer.
 pub fn energy_distance(d_xy: Tensor<3>, generated: Tensor<3>, real: Tensor<3>) -> Tensor<1> {
-    let [_, n, _] = generated.dims();
     let [_, m, _] = real.dims();
+    energy_distance_trainable(d_xy, generated) - mean_within_distance(real, m)
+}
+
+/// The part of the energy distance that depends on the generator,
+/// 2 E|X - Y| - E|X - X'|: what training minimizes. The real-real term is a
+/// constant for the generator, so training skips its k^2 distances.
+pub fn energy_distance_trainable(d_xy: Tensor<3>, generated: Tensor<3>) -> Tensor<1> {
+    let [_, n, _] = generated.dims();
     let xy = d_xy.add_scalar(SQRT_EPS).sqrt().mean();
-    let within = |x: Tensor<3>, k: usize| -> Tensor<1> {
-        let d = pairwise_sq_dists(x.clone(), x).add_scalar(SQRT_EPS).sqrt();
-        let [b, _, _] = d.dims();
-        // Remove the k diagonal entries (each sqrt(eps)) per ray, then
-        // divide by the k (k - 1) off-diagonal pairs.
-        let diag = (b * k) as f32 * SQRT_EPS.sqrt();
-        (d.sum().sub_scalar(diag)).div_scalar((b * k * (k.max(2) - 1)) as f32)
-    };
-    let xx = within(generated, n);
-    let yy = within(real, m);
-    xy.mul_scalar(2.0) - xx - yy
+    xy.mul_scalar(2.0) - mean_within_distance(generated, n)
+}
+
+/// E|X - X'| over distinct pairs of each ray's set `x` (`[B, k, d]`).
+fn mean_within_distance(x: Tensor<3>, k: usize) -> Tensor<1> {
+    let d = pairwise_sq_dists(x.clone(), x).add_scalar(SQRT_EPS).sqrt();
+    let [b, _, _] = d.dims();
+    // Remove the k diagonal entries (each sqrt(eps)) per ray, then divide by
+    // the k (k - 1) off-diagonal pairs.
+    let diag = (b * k) as f32 * SQRT_EPS.sqrt();
+    (d.sum().sub_scalar(diag)).div_scalar((b * k * (k.max(2) - 1)) as f32)
 }
 
 /// Binary cross-entropy with logits, mean over the batch, in the stable form

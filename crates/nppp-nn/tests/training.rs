@@ -103,7 +103,9 @@ fn resume_continues_from_the_saved_step() {
     train_with_data(&opts(&a).tap_epochs(3), info.clone(), data.clone()).unwrap();
     // Interrupted after 1 epoch, then resumed to 3.
     let b = tmp("resume-b");
-    let r1 = train_with_data(&opts(&b).tap_epochs(1), info.clone(), data.clone()).unwrap();
+    let mut o1 = opts(&b).tap_epochs(3);
+    o1.steps = Some(25);
+    let r1 = train_with_data(&o1, info.clone(), data.clone()).unwrap();
     assert_eq!(r1.steps, 25);
     // A second fresh run into the same directory is refused.
     let err = train_with_data(&opts(&b).tap_epochs(1), info.clone(), data.clone()).unwrap_err();

@@ -233,7 +233,7 @@ impl EntryBatch {
                     self.outputs.resize(self.rows.len() * EXIT_FEATURES, 0.0);
                     match decoder {
                         Some(dec) => dec.decode(&self.inputs, self.rows.len(), &mut self.outputs),
-                        None => sampler.baked().decoder.forward_batch(&self.inputs, &mut self.outputs),
+                        None => sampler.forward_batch(&self.inputs, &mut self.outputs),
                     }
                     let tr = &sampler.baked().transform;
                     let max_b = sampler.meta().max_internal_bounces;

@@ -1,0 +1,31 @@
+//! `nppp mesh`: writes a scene's mesh (e.g. a procedural object) as an OBJ,
+//! so that other renderers (tools/mitsuba) can load exactly the same triangles.
+
+use anyhow::{Context, Result};
+use clap::Args;
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+pub struct MeshArgs {
+    /// Scene file that defines the mesh.
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Name of the mesh in the scene's "meshes".
+    #[arg(long)]
+    pub mesh: String,
+    /// OBJ file to write (object space, counter-clockwise front faces).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn run(a: &MeshArgs) -> Result<()> {
+    let scene = nppp_scene::load_scene(&a.scene)?;
+    let Some(i) = scene.mesh_names.iter().position(|n| *n == a.mesh) else {
+        anyhow::bail!("{}: no mesh named \"{}\" (defined: {})", a.scene.display(), a.mesh, scene.mesh_names.join(", "));
+    };
+    let m = &scene.meshes[i];
+    let tri = nppp_scene::procedural::TriMesh { positions: m.positions.clone(), triangles: m.triangles.clone() };
+    nppp_scene::procedural::write_obj(&tri, &a.out).with_context(|| format!("writing {}", a.out.display()))?;
+    eprintln!("{}: {} vertices, {} triangles", a.out.display(), m.positions.len(), m.triangles.len());
+    Ok(())
+}
