@@ -41,12 +41,12 @@ data: $(DATA)
 $(DATA): $(OBJECT_SCENE) | build
 	$(NPPP) gen --scene $(OBJECT_SCENE) --instance $(OBJECT_INSTANCE) $(GEN_FLAGS) --out $@
 
-train: $(MODEL)/model.bpk
-$(MODEL)/model.bpk: $(DATA) | build
+train: $(MODEL)/checkpoint/model.bpk
+$(MODEL)/checkpoint/model.bpk: $(DATA) | build
 	$(NPPP) train --data $(DATA) --out $(MODEL) $(TRAIN_FLAGS)
 
 bake: $(ESTIMATOR)
-$(ESTIMATOR): $(MODEL)/model.bpk | build
+$(ESTIMATOR): $(MODEL)/checkpoint/model.bpk | build
 	$(NPPP) bake --model $(MODEL) $(BAKE_FLAGS) --out $@
 
 # Renders the default scene twice: plain path tracing, and path tracing with

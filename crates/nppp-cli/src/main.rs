@@ -1,6 +1,7 @@
 //! `nppp`: the command-line tool. Each subcommand is one stage of the
 //! pipeline (gen, train, bake, render, bench) or a utility (info, mesh).
 
+mod bench_cmd;
 mod gen_cmd;
 mod mesh_cmd;
 mod render_cmd;
@@ -30,6 +31,9 @@ enum Command {
     Bake(nppp_nn::BakeOptions),
     /// Write a scene's mesh (e.g. a procedural object) as an OBJ.
     Mesh(mesh_cmd::MeshArgs),
+    /// Time against error: PT at M = 1..5 and PT + NPPP at P = 0..3 against a
+    /// cached high-spp reference; writes a Markdown table, CSV and plots.
+    Bench(bench_cmd::BenchArgs),
     /// Print what a `.nppp` estimator holds and its memory.
     Info {
         /// The `.nppp` file.
@@ -53,6 +57,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Render(a) => render_cmd::run(&a),
         Command::Gen(a) => gen_cmd::run(&a),
+        Command::Bench(a) => bench_cmd::run(&a),
         Command::Train(o) => {
             let r = nppp_nn::train(&o)?;
             eprintln!("{r:#?}");

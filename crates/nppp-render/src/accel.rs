@@ -45,6 +45,20 @@ impl TriEdges {
     }
 }
 
+/// Bounds of the vertices that triangles use: a stray unreferenced vertex far
+/// away must not change the scene's extent (and with it the ray offsets).
+fn referenced_bounds(mesh: &Mesh) -> (Vec3, Vec3) {
+    let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+    for t in &mesh.triangles {
+        for &i in t {
+            let p = mesh.positions[i as usize];
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+    }
+    if mesh.triangles.is_empty() { (Vec3::ZERO, Vec3::ZERO) } else { (lo, hi) }
+}
+
 /// The bottom level: one mesh's triangles in BVH leaf order.
 pub struct Blas {
     bvh: Option<CwBvh>,
@@ -64,6 +78,23 @@ pub struct ObjectHit {
     pub b2: f32,
 }
 
+/// Bounds of the triangles that can be hit, not of every position: a vertex
+/// no triangle uses (common in OBJ exports), or one only a zero-area
+/// triangle uses, must not grow the scene's extent, which sets the ray-offset
+/// floor (a stray vertex at 1e9 made the Cornell box 24% brighter through
+/// light leaks). A mesh with no such triangle has the empty box at its origin.
+fn hit_bounds(mesh: &Mesh) -> (Vec3, Vec3) {
+    let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+    for t in &mesh.triangles {
+        let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+        if (b - a).cross(c - a) != Vec3::ZERO {
+            lo = lo.min(a.min(b).min(c));
+            hi = hi.max(a.max(b).max(c));
+        }
+    }
+    if lo.x > hi.x { (Vec3::ZERO, Vec3::ZERO) } else { (lo, hi) }
+}
+
 impl Blas {
     pub fn build(mesh: &Mesh) -> Self {
         let tris: Vec<Triangle> = mesh
@@ -75,11 +106,7 @@ impl Blas {
                 v2: mesh.positions[t[2] as usize].into(),
             })
             .collect();
-        let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
-        for p in &mesh.positions {
-            lo = lo.min(*p);
-            hi = hi.max(*p);
-        }
+        let (lo, hi) = hit_bounds(mesh);
         if tris.is_empty() {
             return Self { bvh: None, tris: vec![], prim_index: vec![], bounds: (Vec3::ZERO, Vec3::ZERO) };
         }
@@ -94,6 +121,11 @@ impl Blas {
             })
             .collect();
         Self { bvh: Some(bvh), tris: stored, prim_index, bounds: (lo, hi) }
+    }
+
+    /// A mesh that only lives in the merged BLAS: its bounds, no BVH.
+    pub fn bounds_only(mesh: &Mesh) -> Self {
+        Self { bvh: None, tris: vec![], prim_index: vec![], bounds: hit_bounds(mesh) }
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -178,11 +210,27 @@ pub struct SceneHit {
     pub b2: f32,
 }
 
+/// TLAS item standing for the merged world-space BLAS.
+pub const MERGED: u32 = u32::MAX;
+/// "Skip no instance" for [`Accel::intersect_skipping`].
+pub const NO_SKIP: u32 = u32::MAX - 1;
+
 /// The top level over all instances.
+///
+/// Instances whose mesh is used only once (walls, a single hero object) are
+/// merged into one world-space BLAS: one traversal instead of one per
+/// overlapping instance box, and no transform per ray. Meshes used several
+/// times, and instances that must stay separate (estimators), are instanced.
 pub struct Accel {
     pub blas: Vec<Blas>,
+    /// Every instance of the scene, merged or not (normals and lights use them).
     pub instances: Vec<InstanceXform>,
     pub(crate) tlas: Option<CwBvh>,
+    /// Per TLAS primitive: an instance index, or [`MERGED`].
+    pub(crate) tlas_items: Vec<u32>,
+    merged: Option<Blas>,
+    /// Per merged triangle: (instance, triangle of its mesh).
+    merged_map: Vec<(u32, u32)>,
     /// World-space bounds of every instance (for the scene's scale and the TLAS).
     pub instance_bounds: Vec<(Vec3, Vec3)>,
 }
@@ -205,11 +253,37 @@ fn transformed_bounds(x: &InstanceXform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
 }
 
 impl Accel {
-    /// Builds one BLAS per mesh (in parallel) and the TLAS over instances.
-    pub fn build(meshes: &[Mesh], instances: &[(usize, Transform)]) -> Self {
+    /// Builds the BLASes (in parallel) and the TLAS. `keep_separate[i]` keeps
+    /// instance `i` out of the merged BLAS.
+    pub fn build(meshes: &[Mesh], instances: &[(usize, Transform)], keep_separate: &[bool]) -> Self {
         use rayon::prelude::*;
-        let blas: Vec<Blas> = meshes.par_iter().map(Blas::build).collect();
         let xforms: Vec<InstanceXform> = instances.iter().map(|(m, t)| InstanceXform::new(*m as u32, t)).collect();
+        let mut uses = vec![0usize; meshes.len()];
+        for (m, _) in instances {
+            uses[*m] += 1;
+        }
+        let merge: Vec<bool> = instances.iter().enumerate().map(|(i, (m, _))| uses[*m] == 1 && !keep_separate.get(i).copied().unwrap_or(false)).collect();
+        // A mesh whose only instance is merged needs no BLAS of its own.
+        let needs_blas: Vec<bool> = (0..meshes.len()).map(|m| instances.iter().zip(&merge).any(|((mi, _), mg)| *mi == m && !mg)).collect();
+        let blas: Vec<Blas> = meshes
+            .par_iter()
+            .zip(needs_blas.par_iter())
+            .map(|(m, need)| if *need { Blas::build(m) } else { Blas::bounds_only(m) })
+            .collect();
+        let mut world = Mesh::default();
+        let mut merged_map = Vec::new();
+        for (i, (m, _)) in instances.iter().enumerate() {
+            if !merge[i] {
+                continue;
+            }
+            let mesh = &meshes[*m];
+            let base = world.positions.len() as u32;
+            world.positions.extend(mesh.positions.iter().map(|p| xforms[i].point_to_world(*p)));
+            for (k, t) in mesh.triangles.iter().enumerate() {
+                world.triangles.push([t[0] + base, t[1] + base, t[2] + base]);
+                merged_map.push((i as u32, k as u32));
+            }
+        }
         let instance_bounds: Vec<(Vec3, Vec3)> = xforms
             .iter()
             .map(|x| {
@@ -217,23 +291,51 @@ impl Accel {
                 transformed_bounds(x, lo, hi)
             })
             .collect();
-        let aabbs: Vec<Aabb> = instance_bounds.iter().map(|(a, b)| Aabb::new((*a).into(), (*b).into())).collect();
+        let mut tlas_items: Vec<u32> = (0..instances.len() as u32).filter(|i| !merge[*i as usize]).collect();
+        let mut aabbs: Vec<Aabb> = tlas_items.iter().map(|&i| {
+            let (a, b) = instance_bounds[i as usize];
+            Aabb::new(a.into(), b.into())
+        }).collect();
+        let merged = if world.triangles.is_empty() {
+            None
+        } else {
+            let b = Blas::build(&world);
+            let pad = b.bounds.0.abs().max(b.bounds.1.abs()).max_element() * 1e-6;
+            aabbs.push(Aabb::new((b.bounds.0 - pad).into(), (b.bounds.1 + pad).into()));
+            tlas_items.push(MERGED);
+            Some(b)
+        };
         let tlas = if aabbs.is_empty() {
             None
         } else {
             Some(obvhs::cwbvh::builder::build_cwbvh(&aabbs, BvhBuildParams::medium_build(), &mut Duration::default()))
         };
-        Self { blas, instances: xforms, tlas, instance_bounds }
+        Self { blas, instances: xforms, tlas, tlas_items, merged, merged_map, instance_bounds }
+    }
+
+    /// Closest hit of one TLAS item (an instance or the merged BLAS) in (0, tmax), world space.
+    #[inline(always)]
+    pub(crate) fn item_hit(&self, item: u32, o: Vec3, d: Vec3, tmax: f32) -> Option<SceneHit> {
+        if item == MERGED {
+            let h = self.merged.as_ref()?.intersect(o.into(), d.into(), 0.0, tmax)?;
+            let (instance, prim) = self.merged_map[h.prim as usize];
+            return Some(SceneHit { t: h.t, instance, prim, b1: h.b1, b2: h.b2 });
+        }
+        let x = &self.instances[item as usize];
+        let oo = x.point_to_object(o);
+        let od = x.dir_to_object(d);
+        let h = self.blas[x.blas as usize].intersect(oo.into(), od.into(), 0.0, tmax * x.inv_scale)?;
+        Some(SceneHit { t: h.t * x.scale, instance: item, prim: h.prim, b1: h.b1, b2: h.b2 })
     }
 
     /// Closest hit along a world ray (unit direction) with t in (0, tmax).
     #[inline]
     pub fn intersect(&self, o: Vec3, d: Vec3, tmax: f32) -> Option<SceneHit> {
-        self.intersect_skipping(o, d, tmax, u32::MAX)
+        self.intersect_skipping(o, d, tmax, NO_SKIP)
     }
 
     /// [`Self::intersect`] ignoring instance `skip` (the one a path has just
-    /// left through its estimator).
+    /// left through its estimator; such instances are never merged).
     #[inline]
     pub fn intersect_skipping(&self, o: Vec3, d: Vec3, tmax: f32, skip: u32) -> Option<SceneHit> {
         let tlas = self.tlas.as_ref()?;
@@ -241,19 +343,14 @@ impl Accel {
         let mut hit = RayHit::none();
         let mut best: Option<SceneHit> = None;
         tlas.ray_traverse(ray, &mut hit, |r, id| {
-            let inst_id = tlas.primitive_indices[id];
-            if inst_id == skip {
+            let item = self.tlas_items[tlas.primitive_indices[id] as usize];
+            if item == skip {
                 return f32::INFINITY;
             }
-            let x = &self.instances[inst_id as usize];
-            let oo = x.point_to_object(o);
-            let od = x.dir_to_object(d);
-            let tmax_obj = r.tmax * x.inv_scale;
-            match self.blas[x.blas as usize].intersect(oo.into(), od.into(), 0.0, tmax_obj) {
+            match self.item_hit(item, o, d, r.tmax) {
                 Some(h) => {
-                    let t = h.t * x.scale;
-                    best = Some(SceneHit { t, instance: inst_id, prim: h.prim, b1: h.b1, b2: h.b2 });
-                    t
+                    best = Some(h);
+                    h.t
                 }
                 None => f32::INFINITY,
             }
@@ -267,10 +364,14 @@ impl Accel {
         let Some(tlas) = self.tlas.as_ref() else { return false };
         let ray = BvhRay::new(o.into(), d.into(), 0.0, tmax);
         !tlas.ray_traverse_miss(ray, |r, id| {
-            let x = &self.instances[tlas.primitive_indices[id] as usize];
-            let oo = x.point_to_object(o);
-            let od = x.dir_to_object(d);
-            if self.blas[x.blas as usize].occluded(oo.into(), od.into(), 0.0, r.tmax * x.inv_scale) { 0.0 } else { f32::INFINITY }
+            let item = self.tlas_items[tlas.primitive_indices[id] as usize];
+            let blocked = if item == MERGED {
+                self.merged.as_ref().is_some_and(|b| b.occluded(o.into(), d.into(), 0.0, r.tmax))
+            } else {
+                let x = &self.instances[item as usize];
+                self.blas[x.blas as usize].occluded(x.point_to_object(o).into(), x.dir_to_object(d).into(), 0.0, r.tmax * x.inv_scale)
+            };
+            if blocked { 0.0 } else { f32::INFINITY }
         })
     }
 

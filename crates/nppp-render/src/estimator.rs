@@ -111,18 +111,19 @@ impl Estimators {
         let mut best: Option<SceneHit> = None;
         let mut cand: Option<Candidate> = None;
         tlas.ray_traverse(ray, &mut hit, |r, id| {
-            let inst = tlas.primitive_indices[id];
+            let inst = accel.tlas_items[tlas.primitive_indices[id] as usize];
             if inst == skip {
                 return f32::INFINITY;
             }
-            let x = &accel.instances[inst as usize];
-            let oo = x.point_to_object(o);
-            let od = x.dir_to_object(d);
-            if let Some(ei) = self.per_instance[inst as usize] {
+            if inst != crate::accel::MERGED
+                && let Some(ei) = self.per_instance[inst as usize]
+            {
+                let x = &accel.instances[inst as usize];
                 let est = &self.list[ei as usize];
-                let uo = est.sphere.to_unit_point(oo);
+                let uo = est.sphere.to_unit_point(x.point_to_object(o));
                 // A ray from inside the sphere never uses it: trace the mesh.
                 if uo.length_squared() > 1.0 {
+                    let od = x.dir_to_object(d);
                     let unit_ray = Ray::new(uo, od);
                     let Some(chord) = unit_sphere_chord(&unit_ray) else { return f32::INFINITY };
                     if chord.t_in < 0.0 {
@@ -147,11 +148,10 @@ impl Estimators {
                     return f32::INFINITY;
                 }
             }
-            match accel.blas[x.blas as usize].intersect(oo.into(), od.into(), 0.0, r.tmax * x.inv_scale) {
+            match accel.item_hit(inst, o, d, r.tmax) {
                 Some(h) => {
-                    let t = h.t * x.scale;
-                    best = Some(SceneHit { t, instance: inst, prim: h.prim, b1: h.b1, b2: h.b2 });
-                    t
+                    best = Some(h);
+                    h.t
                 }
                 None => f32::INFINITY,
             }

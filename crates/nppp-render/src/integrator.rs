@@ -50,7 +50,7 @@ pub struct PathState {
     /// Product of the radiance scalings at refractions, undone for Russian roulette.
     pub eta_scale: f32,
     /// The instance whose estimator this ray has just left (ignored by the
-    /// next intersection), or `u32::MAX`.
+    /// next intersection), or `NO_SKIP`.
     pub skip_instance: u32,
 }
 
@@ -68,7 +68,7 @@ impl PathState {
             prev_delta: true,
             prev_point: origin,
             eta_scale: 1.0,
-            skip_instance: u32::MAX,
+            skip_instance: crate::accel::NO_SKIP,
         }
     }
 }
@@ -289,7 +289,7 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
     path.depth += 1;
     path.origin = offset_point(p, ng, wi, eps);
     path.dir = wi;
-    path.skip_instance = u32::MAX;
+    path.skip_instance = crate::accel::NO_SKIP;
 
     if path.depth >= RR_START_DEPTH {
         let q = (1.0 - (path.beta * path.eta_scale).max_element()).max(0.0);

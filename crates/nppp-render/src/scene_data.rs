@@ -51,7 +51,8 @@ pub fn surface_of(m: &Material) -> SurfaceKind {
 impl RenderScene {
     pub fn new(scene: &Scene) -> Self {
         let inst: Vec<(usize, nppp_scene::Transform)> = scene.instances.iter().map(|i| (i.mesh, i.transform)).collect();
-        let accel = Accel::build(&scene.meshes, &inst);
+        let keep: Vec<bool> = scene.instances.iter().map(|i| i.estimator.is_some()).collect();
+        let accel = Accel::build(&scene.meshes, &inst, &keep);
         let geo_normals: Vec<Vec<Vec3>> = scene
             .meshes
             .iter()

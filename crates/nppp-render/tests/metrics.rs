@@ -17,8 +17,10 @@ fn ramp(w: u32, h: u32) -> Image {
     img
 }
 
+/// Relative agreement up to f32 rounding of the pixel values (0.6, 0.1, ...
+/// are not exact in f32).
 fn close(a: f64, b: f64) -> bool {
-    (a - b).abs() <= 1e-12 * (1.0 + a.abs().max(b.abs()))
+    (a - b).abs() <= 1e-6 * a.abs().max(b.abs()).max(1e-30)
 }
 
 #[test]

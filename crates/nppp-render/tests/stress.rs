@@ -116,7 +116,9 @@ fn cornell_small(size: u32) -> Value {
 }
 
 /// The default Cornell box (with its torus knot) at 1e-4, 1 and 1e4 renders
-/// the same image: the mean within 1%, every 8x8 block within 4%.
+/// the same image: the mean within 0.5%, every 8x8 block within 2% (measured:
+/// 0.02% and 0.1% at 1e-4; a different seed moves blocks by ~3%; Mitsuba 3
+/// is 5% too bright at 1e-4).
 /// Self-intersection at small scales brightens (light leaks through the
 /// ceiling gap of 0.1 units around the lamp) or darkens (shadow rays hit
 /// their own surface); either shows here.
@@ -139,10 +141,10 @@ fn cornell_box_renders_alike_at_1e_minus4_1_and_1e4() {
     for s in [1e-4, 1e4] {
         let img = render(s, 7);
         let m = luminance_mean(&img);
-        assert!((m / m_ref - 1.0).abs() < 0.01, "scale {s}: mean {m} vs {m_ref} at scale 1");
+        assert!((m / m_ref - 1.0).abs() < 0.005, "scale {s}: mean {m} vs {m_ref} at scale 1");
         for (i, (a, b)) in block_means(&img, 8).iter().zip(&b_ref).enumerate() {
             let rel = (a - b).abs() / b.max(1e-3);
-            assert!(rel < 0.04, "scale {s}: block {i} differs by {:.2}% ({a} vs {b}; seed-to-seed noise {:.2}%)", rel * 100.0, noise * 100.0);
+            assert!(rel < 0.02, "scale {s}: block {i} differs by {:.2}% ({a} vs {b}; seed-to-seed noise {:.2}%)", rel * 100.0, noise * 100.0);
         }
     }
 }
@@ -208,8 +210,8 @@ fn radiance_near_f32_max_drops_and_counts_overflowing_samples() {
     assert!(st.dropped_samples > 0, "no sample overflowed: the test does not test anything");
     assert!(st.dropped_samples < st.samples);
     // The lamp itself, seen directly, is exactly its radiance: nothing overflowed there.
-    let top = (0..16).map(|x| img.get(x, 0)[0]).fold(0.0, f32::max);
-    assert!(top > 1e38, "brightest top-row pixel {top}");
+    let top = img.pixels.iter().map(|p| p[0]).fold(0.0, f32::max);
+    assert!(top > 1e38, "brightest pixel {top}");
 }
 
 // ---------------------------------------------------------------------------
@@ -267,7 +269,10 @@ fn roughness_just_above_mirror_threshold_is_finite_and_lossless() {
     let (img, st) = render_json(&json, 16, 8, 1);
     assert_finite(&img, "roughness 1.5e-4");
     assert_eq!(st.dropped_samples, 0);
-    assert!(max_dev(&img, 1.0) < 0.01, "a pixel strays by {}", max_dev(&img, 1.0));
+    let m = luminance_mean(&img);
+    assert!((m - 1.0).abs() < 2e-3, "mean {m}");
+    // Single pixels carry the GGX tail's noise (NEE vs BSDF sampling), a few percent at 16 spp.
+    assert!(max_dev(&img, 1.0) < 0.08, "a pixel strays by {}", max_dev(&img, 1.0));
 }
 
 /// Roughness exactly 1: finite, nothing dropped, and the single-scattering
@@ -279,8 +284,8 @@ fn roughness_one_is_finite_and_loses_energy_as_single_scattering_ggx() {
     let (img, st) = render_json(&json, 64, 8, 1);
     assert_finite(&img, "roughness 1");
     assert_eq!(st.dropped_samples, 0);
-    let c = img.get(12, 12)[0];
-    assert!(c > 0.3 && c < 0.6, "centre {c}");
+    let c = (img.get(11, 11)[0] + img.get(12, 12)[0] + img.get(11, 12)[0] + img.get(12, 11)[0]) / 4.0;
+    assert!(c > 0.2 && c < 0.45, "centre {c}");
     assert!(img.pixels.iter().all(|p| p[0] <= 1.0 + 1e-5), "a pixel is brighter than the furnace");
 }
 
@@ -343,11 +348,12 @@ v 0 1 0
 v 0.5 0.5 0
 v -1e6 0.25 0.25
 v 1e6 0.25 0.25
+v 0 0.25 0.25
 f 25 26 27
 f 25 25 28
 f 28 29 30
 f 31 32 33
-f 34 35 28
+f 34 35 36
 f 1 1 2
 f 3 3 3
 ";
@@ -360,7 +366,7 @@ f 3 3 3
     assert_finite(&b, "degenerate triangles");
     assert_eq!((sa.dropped_samples, sb.dropped_samples), (0, 0));
     let worst = a.pixels.iter().zip(&b.pixels).flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs())).fold(0.0, f32::max);
-    assert!(worst < 1e-5, "the degenerate triangles changed a pixel by {worst}");
+    assert_eq!(worst, 0.0, "the degenerate triangles changed a pixel by {worst}");
     // And the octahedron is really there: its centre pixel is darker than the walls.
     assert!(a.get(12, 12)[0] < 0.9);
     let _ = std::fs::remove_dir_all(&dir);
@@ -483,4 +489,28 @@ fn high_spp_mean_does_not_drift() {
         let tol = if spp == 256 { 5e-3 } else { 1e-3 };
         assert!((m / 0.7 - 1.0).abs() < tol, "{spp} spp: mean {m}, want 0.7");
     }
+}
+
+/// A vertex far away that no triangle uses (or only a zero-area one)
+/// leaves the Cornell box's image bit for bit unchanged. It used to set the
+/// scene's extent, and with it the ray-offset floor: a stray vertex at 1e9
+/// made the box 24% brighter through light leaks.
+#[test]
+fn stray_far_vertices_change_nothing() {
+    let dir = temp_dir("stray");
+    let mut base = cornell_small(24);
+    base["meshes"]["tri"] = json!({"obj": "tri.obj"});
+    base["instances"].as_array_mut().unwrap().push(json!({"mesh": "tri", "material": "white"}));
+    let render = |obj: &str| {
+        std::fs::write(dir.join("tri.obj"), obj).unwrap();
+        let scene = nppp_scene::parse_scene(&base.to_string(), &dir.join("scene.json")).unwrap();
+        render_scene(&scene, 32, 5, 7).0
+    };
+    let tri = "v 100 10 100\nv 150 10 100\nv 100 10 150\nf 1 3 2\n";
+    let clean = render(tri);
+    for extra in ["v 1e9 1e9 1e9\n", "v 1e9 1e9 1e9\nv 2e9 2e9 2e9\nv 3e9 3e9 3e9\nf 4 5 6\nf 1 4 4\n"] {
+        let img = render(&format!("{tri}{extra}"));
+        assert!(img == clean, "{extra:?} changed the image: mean {:?} vs {:?}", img.mean(), clean.mean());
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }
