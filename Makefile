@@ -49,11 +49,18 @@ bake: $(ESTIMATOR)
 $(ESTIMATOR): $(MODEL)/checkpoint/model.bpk | build
 	$(NPPP) bake --model $(MODEL) $(BAKE_FLAGS) --out $@
 
-# Renders the default scene twice: plain path tracing, and path tracing with
-# the committed estimator (order-only: a fresh clone does not retrain).
-render: build | $(ESTIMATOR)
-	$(NPPP) render $(SCENE) --spp $(SPP) --estimators off --out $(OUT)/pt.exr --png $(OUT)/pt.png
-	$(NPPP) render $(SCENE) --spp $(SPP) --estimators neural --min-bounces $(P) --out $(OUT)/nppp.exr --png $(OUT)/nppp.png
+# A high-spp plain path-traced reference, rendered once and kept.
+REF_SPP ?= 1024
+REFERENCE := $(OUT)/reference-$(notdir $(basename $(SCENE)))-$(REF_SPP).exr
+$(REFERENCE): | build
+	$(NPPP) render $(SCENE) --spp $(REF_SPP) --seed 1000 --estimators off --out $@
+
+# Renders the default scene twice, plain path tracing and path tracing with
+# the committed estimator (order-only: a fresh clone does not retrain), and
+# prints the time and error of each against the reference.
+render: build $(REFERENCE) | $(ESTIMATOR)
+	$(NPPP) render $(SCENE) --spp $(SPP) --estimators off --reference $(REFERENCE) --out $(OUT)/pt.exr --png $(OUT)/pt.png
+	$(NPPP) render $(SCENE) --spp $(SPP) --estimators neural --min-bounces $(P) --reference $(REFERENCE) --out $(OUT)/nppp.exr --png $(OUT)/nppp.png
 
 test:
 	cargo test --workspace

@@ -151,7 +151,6 @@ struct Measurement {
 #[derive(Clone, Debug)]
 struct Cell {
     spp: u32,
-    n: usize,
     seconds: f64,
     samples_per_second: f64,
     rel_mse: f64,
@@ -559,7 +558,7 @@ fn cells(r: &SceneResult, config: usize, ladder: &[u32]) -> Vec<Cell> {
             let flips: Vec<f64> = ms.iter().filter_map(|m| m.flip).collect();
             Some(Cell {
                 spp,
-                n: ms.len(),
+
                 seconds,
                 samples_per_second: samples / seconds.max(1e-9),
                 rel_mse: mu,
@@ -1177,7 +1176,6 @@ mod tests {
     fn cell(spp: u32, seconds: f64, rel_mse: f64) -> Cell {
         Cell {
             spp,
-            n: 1,
             seconds,
             samples_per_second: 1.0,
             rel_mse,

@@ -2,7 +2,7 @@
 
 use anyhow::{Context, Result};
 use clap::Args;
-use nppp_render::estimator::{EstimatorMode, Estimators};
+use nppp_render::estimator::{BatchDecoder, EstimatorMode, EstimatorModel, Estimators};
 use nppp_render::{RenderOptions, RenderScene, image_io};
 use std::path::PathBuf;
 
@@ -34,6 +34,14 @@ pub struct RenderArgs {
     /// nothing (plain path tracing).
     #[arg(long, value_enum, default_value_t = EstimatorChoice::Neural)]
     pub estimators: EstimatorChoice,
+    /// Which decoder answers batched estimator queries: the plain-Rust CPU
+    /// decoder, or the Burn module on a backend (burn-wgpu needs the `wgpu` feature).
+    #[arg(long, value_enum, default_value_t = DecoderChoice::Cpu)]
+    pub decoder: DecoderChoice,
+    /// Compare the result with this reference EXR (same size) and print relMSE,
+    /// relMSE without the brightest 0.1% errors, MAPE and RMSE.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -46,8 +54,48 @@ pub enum EstimatorChoice {
     Oracle,
 }
 
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DecoderChoice {
+    Cpu,
+    BurnNdarray,
+    BurnFlex,
+    BurnWgpu,
+}
+
+/// The Burn decoder behind the renderer's batch interface.
+struct BurnBatch(nppp_nn::decoder::BurnDecoder);
+
+impl BatchDecoder for BurnBatch {
+    fn decode(&self, input: &[f32], rows: usize, output: &mut [f32]) -> Result<(), String> {
+        self.0.forward(input, rows, output).map_err(|e| e.to_string())
+    }
+    fn name(&self) -> &str {
+        "burn"
+    }
+}
+
+fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
+    let backend = match choice {
+        DecoderChoice::Cpu => return Ok(()),
+        DecoderChoice::BurnNdarray => nppp_nn::BackendKind::Ndarray,
+        DecoderChoice::BurnFlex => nppp_nn::BackendKind::Flex,
+        DecoderChoice::BurnWgpu => nppp_nn::BackendKind::Wgpu,
+    };
+    for e in &mut ests.list {
+        if let EstimatorModel::Neural { sampler, decoder } = &mut e.model {
+            *decoder = Some(Box::new(BurnBatch(nppp_nn::decoder::BurnDecoder::new(&sampler.baked().decoder, backend)?)));
+        }
+    }
+    Ok(())
+}
+
 pub fn run(a: &RenderArgs) -> Result<()> {
     let scene = nppp_scene::load_scene(&a.scene)?;
+    // Read the reference first: a bad reference should fail before minutes of rendering.
+    let reference = match &a.reference {
+        Some(p) => Some(image_io::read_exr(p)?),
+        None => None,
+    };
     let mut settings = scene.render;
     if let Some(s) = a.spp {
         anyhow::ensure!(s >= 1, "--spp must be at least 1");
@@ -70,6 +118,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         EstimatorChoice::Oracle => EstimatorMode::Oracle,
     };
     rs.estimators = Estimators::load(&scene, mode, settings.estimator_min_bounces)?;
+    if let Some(e) = &mut rs.estimators {
+        attach_decoders(e, a.decoder)?;
+    }
     let build = t0.elapsed().as_secs_f64();
     let opts = RenderOptions { spp: settings.spp, max_bounces: settings.max_bounces, seed: settings.seed, progress: !a.quiet };
     let (img, stats) = nppp_render::render(&rs, &opts);
@@ -81,13 +132,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(e) = &rs.estimators {
         let st = &stats.estimators;
         eprintln!(
-            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {:.2} MiB shared; repairs: {} degenerate, {} inward, {} clamped",
+            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {} decoder fallbacks, {:.2} MiB shared; repairs: {} degenerate, {} inward, {} clamped",
             a.estimators,
             settings.estimator_min_bounces,
             st.entries,
             st.mask_skips,
             st.ambiguous,
             st.over_max_bounces,
+            st.decoder_fallbacks,
             e.memory_bytes() as f64 / (1024.0 * 1024.0),
             st.repairs.degenerate,
             st.repairs.inward,
@@ -109,5 +161,17 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         m[2],
         if stats.dropped_samples > 0 { format!(", {} non-finite samples dropped", stats.dropped_samples) } else { String::new() }
     );
+    if let Some(r) = &reference {
+        let e = nppp_render::metrics::compare(&img, r).with_context(|| format!("comparing with {}", a.reference.as_ref().map(|p| p.display().to_string()).unwrap_or_default()))?;
+        eprintln!(
+            "error vs {}: relMSE {:.5}, relMSE (brightest 0.1% dropped) {:.5}, MAPE {:.4}, RMSE {:.5}; {:.2}s",
+            a.reference.as_ref().map(|p| p.display().to_string()).unwrap_or_default(),
+            e.rel_mse,
+            e.rel_mse_trimmed,
+            e.mape,
+            e.rmse,
+            stats.seconds
+        );
+    }
     Ok(())
 }

@@ -20,19 +20,22 @@ pub struct BoundingSphere {
 }
 
 impl BoundingSphere {
-    /// A tight sphere around `points` (Ritter's pass followed by the exact
-    /// farthest-point radius around the resulting centre), enlarged by
+    /// A tight sphere around `points` (Ritter's algorithm, then the exact
+    /// farthest-point radius around its centre: within a few % of the
+    /// minimal sphere), enlarged by
     /// `margin` (relative) so that no surface point lies on the sphere itself.
     pub fn around(points: &[Vec3], margin: f32) -> Self {
         if points.is_empty() {
             return Self { center: Vec3::ZERO, radius: 1.0 };
         }
-        let (lo, hi) = points
-            .iter()
-            .fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
-        // Ritter: start from the bbox centre, grow to include outliers.
-        let mut center = (lo + hi) * 0.5;
-        let mut radius = 0.0f32;
+        // Ritter: start from a near-diameter (the point farthest from an
+        // arbitrary point, and the point farthest from that), then grow the
+        // sphere to include any outlier.
+        let far = |from: Vec3| *points.iter().max_by(|a, b| a.distance_squared(from).total_cmp(&b.distance_squared(from))).unwrap_or(&from);
+        let y = far(points[0]);
+        let z = far(y);
+        let mut center = (y + z) * 0.5;
+        let mut radius = 0.5 * y.distance(z);
         for p in points {
             let d = p.distance(center);
             if d > radius {
@@ -179,6 +182,15 @@ mod tests {
                 prop_assert!(s.to_unit_point(*p).length() < 1.0);
             }
         }
+    }
+
+    #[test]
+    fn bounding_sphere_of_a_sphere_is_tight() {
+        let mut r = crate::SampleRng::from_seed(4);
+        let pts: Vec<Vec3> = (0..2000).map(|_| uniform_sphere(r.uniform2()) * 0.5 + Vec3::new(3.0, -1.0, 2.0)).collect();
+        let s = BoundingSphere::around(&pts, 0.0);
+        assert!(s.radius < 0.5 * 1.03, "radius {}", s.radius);
+        assert!(s.center.distance(Vec3::new(3.0, -1.0, 2.0)) < 0.02);
     }
 
     #[test]

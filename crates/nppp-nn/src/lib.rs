@@ -9,6 +9,7 @@
 pub mod backend;
 pub mod bake;
 pub mod data;
+pub mod decoder;
 pub mod eval;
 pub mod features;
 pub mod io;

@@ -45,20 +45,6 @@ impl TriEdges {
     }
 }
 
-/// Bounds of the vertices that triangles use: a stray unreferenced vertex far
-/// away must not change the scene's extent (and with it the ray offsets).
-fn referenced_bounds(mesh: &Mesh) -> (Vec3, Vec3) {
-    let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
-    for t in &mesh.triangles {
-        for &i in t {
-            let p = mesh.positions[i as usize];
-            lo = lo.min(p);
-            hi = hi.max(p);
-        }
-    }
-    if mesh.triangles.is_empty() { (Vec3::ZERO, Vec3::ZERO) } else { (lo, hi) }
-}
-
 /// The bottom level: one mesh's triangles in BVH leaf order.
 pub struct Blas {
     bvh: Option<CwBvh>,

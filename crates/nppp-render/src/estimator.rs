@@ -24,8 +24,9 @@ use obvhs::ray::{Ray as BvhRay, RayHit};
 /// the default runs the baked weights in plain Rust.
 pub trait BatchDecoder: Send + Sync {
     /// `input` holds `rows` rows of `latent_dim + noise_dim` floats; writes
-    /// `rows` rows of `EXIT_FEATURES` floats to `output`.
-    fn decode(&self, input: &[f32], rows: usize, output: &mut [f32]);
+    /// `rows` rows of `EXIT_FEATURES` floats to `output`. On an error the
+    /// renderer falls back to the CPU decoder for that batch and counts it.
+    fn decode(&self, input: &[f32], rows: usize, output: &mut [f32]) -> Result<(), String>;
     fn name(&self) -> &str;
 }
 
@@ -81,6 +82,8 @@ pub struct EstimatorStats {
     pub repairs: DecodeRepairs,
     /// Exits whose internal bounces took the path past M.
     pub over_max_bounces: u64,
+    /// Batches the configured decoder failed on (answered by the CPU decoder).
+    pub decoder_fallbacks: u64,
 }
 
 impl EstimatorStats {
@@ -89,6 +92,7 @@ impl EstimatorStats {
         self.mask_skips += o.mask_skips;
         self.ambiguous += o.ambiguous;
         self.over_max_bounces += o.over_max_bounces;
+        self.decoder_fallbacks += o.decoder_fallbacks;
         self.repairs.degenerate += o.repairs.degenerate;
         self.repairs.inward += o.repairs.inward;
         self.repairs.clamped += o.repairs.clamped;
@@ -232,7 +236,12 @@ impl EntryBatch {
                     self.outputs.clear();
                     self.outputs.resize(self.rows.len() * EXIT_FEATURES, 0.0);
                     match decoder {
-                        Some(dec) => dec.decode(&self.inputs, self.rows.len(), &mut self.outputs),
+                        Some(dec) => {
+                            if dec.decode(&self.inputs, self.rows.len(), &mut self.outputs).is_err() {
+                                stats.decoder_fallbacks += 1;
+                                sampler.forward_batch(&self.inputs, &mut self.outputs);
+                            }
+                        }
                         None => sampler.forward_batch(&self.inputs, &mut self.outputs),
                     }
                     let tr = &sampler.baked().transform;

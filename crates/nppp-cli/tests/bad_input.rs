@@ -1,0 +1,633 @@
+//! Bad input through the real `nppp` binary: the corpus in `tests/bad_input/`
+//! (every error class of SCENE_FORMAT.md, broken OBJ, estimator and
+//! training-data files, absurd flags). For each case the tool must exit with
+//! status 1 (101 would be a panic), name the file and the key path or reason
+//! on stderr, and leave the output folder exactly as it was: no new file, and
+//! an existing output file byte for byte intact.
+//!
+//! The binary fixtures (`*.nppp`, `*.nppd`) are made by the ignored test
+//! `regenerate_binary_fixtures` (run it with `--ignored` after a format
+//! change); the JSON and OBJ files are hand-made. docs/robustness.md lists
+//! every case and what the pipeline does.
+
+use nppp_estimator::{BakedEstimator, DatasetHeader, DatasetReader, DatasetWriter, Dense, EstimatorMeta, Exit, ExitTransform, Mlp, RayRecord, WriterOptions};
+use nppp_geom::{BoundingSphere, SpherePair, Vec3};
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::Duration;
+
+fn corpus() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/bad_input").canonicalize().expect("tests/bad_input exists")
+}
+
+fn file(name: &str) -> PathBuf {
+    corpus().join(name)
+}
+
+/// A fresh, empty folder for one case.
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("nppp-bad-input-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn nppp<I, S>(args: I) -> Output
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    Command::new(env!("CARGO_BIN_EXE_nppp")).args(args).env("RUST_BACKTRACE", "0").output().expect("cannot run nppp")
+}
+
+fn text(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Exit status 1 (not a panic's 101, not success) and every needle on stderr.
+fn assert_clean_error(what: &str, o: &Output, needles: &[&str]) {
+    let err = text(o);
+    assert!(!err.contains("panicked"), "{what}: panicked:\n{err}");
+    assert_eq!(o.status.code(), Some(1), "{what}: exit status {:?}, stderr:\n{err}", o.status);
+    for n in needles {
+        assert!(err.contains(n), "{what}: stderr lacks {n:?}:\n{err}");
+    }
+}
+
+const PREVIOUS: &[u8] = b"a previous render the user wants to keep";
+
+/// Runs `nppp render` on `scene` with `--out` naming an existing file in a
+/// fresh folder; afterwards that file is untouched and nothing else exists.
+fn render_fails(case: &str, scene: &Path, extra: &[&str], needles: &[&str]) {
+    let dir = scratch(case);
+    let out = dir.join("out.exr");
+    std::fs::write(&out, PREVIOUS).unwrap();
+    let mut args: Vec<&OsStr> = vec!["render".as_ref(), scene.as_os_str(), "--quiet".as_ref(), "--out".as_ref(), out.as_os_str()];
+    args.extend(extra.iter().map(|s| OsStr::new(*s)));
+    let o = nppp(&args);
+    assert_clean_error(case, &o, needles);
+    assert_eq!(std::fs::read(&out).unwrap(), PREVIOUS, "{case}: the existing output was modified");
+    let names: Vec<String> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    assert_eq!(names, ["out.exr"], "{case}: files left behind");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+// ---------------------------------------------------------------------------
+// Scenes: SCENE_FORMAT.md's error list, case by case
+// ---------------------------------------------------------------------------
+
+/// (scene file in tests/bad_input, what stderr must say besides the file's
+/// path). Key paths are checked as the contract writes them.
+const SCENES: &[(&str, &[&str])] = &[
+    // Not JSON at all, or not the JSON we take.
+    ("empty.json", &["invalid JSON", "EOF while parsing"]),
+    ("truncated.json", &["invalid JSON", "EOF while parsing", "meshes"]),
+    ("garbage_binary.json", &["cannot read the scene file", "UTF-8"]),
+    ("garbage_text.json", &["invalid JSON", "expected value"]),
+    ("nul_bytes.json", &["invalid JSON", "expected value"]),
+    ("not_an_object.json", &["(top level)", "expected an object, found an array"]),
+    ("trailing_characters.json", &["invalid JSON", "trailing characters"]),
+    ("duplicate_key.json", &["invalid JSON at render", "duplicate key \"render\""]),
+    ("deep_nesting.json", &["invalid JSON at camera", "recursion limit exceeded"]),
+    ("nan_literal.json", &["invalid JSON at camera.fov_y_deg", "expected value"]),
+    ("infinity_literal.json", &["invalid JSON at instances[0].transform.rotate.deg", "expected value"]),
+    // Non-finite numbers: beyond f64 (a JSON error), beyond f32 (a range error).
+    ("number_1e999.json", &["invalid JSON at materials.white.albedo[1]", "number out of range"]),
+    ("negative_1e999.json", &["invalid JSON at instances[0].transform.translate[1]", "number out of range"]),
+    ("not_f32_finite_translate.json", &["instances[0].transform.translate[1]", "not finite as a 32-bit float"]),
+    ("not_f32_finite_position.json", &["camera.position[2]", "not finite as a 32-bit float"]),
+    ("spp_huge_integer.json", &["render.spp", "not exactly representable"]),
+    ("spp_not_u32.json", &["render.spp", "at most 4294967295"]),
+    ("spp_float.json", &["render.spp", "must be an integer, found 1.5"]),
+    ("spp_negative.json", &["render.spp", "non-negative integer, found -4"]),
+    ("spp_zero.json", &["render.spp", "at least 1"]),
+    ("seed_string.json", &["render.seed", "expected a non-negative integer, found a string"]),
+    ("seed_1e30.json", &["render.seed", "not exactly representable"]),
+    ("width_string.json", &["camera.width", "found a string"]),
+    ("position_two_numbers.json", &["camera.position", "3 numbers, found 2 elements"]),
+    ("position_null.json", &["camera.position", "found null"]),
+    // Unknown keys.
+    ("unknown_key_top.json", &["lights", "unknown key \"lights\""]),
+    ("unknown_key_camera.json", &["camera.fov", "unknown key \"fov\""]),
+    ("unknown_key_material.json", &["materials.white.roughness", "unknown key"]),
+    ("unknown_key_instance.json", &["instances[1].materal", "unknown key"]),
+    ("unknown_key_transform.json", &["instances[0].transform.rotation", "unknown key"]),
+    ("unknown_key_rotate.json", &["instances[0].transform.rotate.angle", "unknown key"]),
+    ("unknown_key_render.json", &["render.samples", "unknown key"]),
+    ("unknown_key_mesh.json", &["meshes.floor.flip", "unknown key"]),
+    ("unknown_key_box.json", &["meshes.block.box.center", "unknown key"]),
+    ("unknown_material_type.json", &["materials.white.type", "unknown material type \"plastic\""]),
+    ("unknown_procedural_type.json", &["meshes.block.procedural.type", "unknown procedural type \"teapot\""]),
+    // Missing required keys.
+    ("missing_camera.json", &["camera: required key is missing"]),
+    ("missing_materials.json", &["materials: required key is missing"]),
+    ("missing_meshes.json", &["meshes: required key is missing"]),
+    ("missing_instances.json", &["instances: required key is missing"]),
+    ("missing_camera_position.json", &["camera.position: required key is missing"]),
+    ("missing_camera_look_at.json", &["camera.look_at: required key is missing"]),
+    ("missing_camera_fov_y_deg.json", &["camera.fov_y_deg: required key is missing"]),
+    ("missing_camera_width.json", &["camera.width: required key is missing"]),
+    ("missing_camera_height.json", &["camera.height: required key is missing"]),
+    ("missing_albedo.json", &["materials.white.albedo: required key is missing"]),
+    ("missing_material_type.json", &["materials.white.type: required key is missing"]),
+    ("missing_reflectance.json", &["materials.gold.reflectance: required key is missing"]),
+    ("missing_roughness.json", &["materials.gold.roughness: required key is missing"]),
+    ("missing_ior.json", &["materials.glass.ior: required key is missing"]),
+    ("missing_radiance.json", &["materials.lamp.radiance: required key is missing"]),
+    ("missing_instance_mesh.json", &["instances[2].mesh: required key is missing"]),
+    ("missing_instance_material.json", &["instances[1].material: required key is missing"]),
+    ("missing_mesh_source.json", &["meshes.floor", "needs one source key"]),
+    ("missing_box_max.json", &["meshes.block.box.max: required key is missing"]),
+    ("missing_icosphere_radius.json", &["meshes.ball.icosphere.radius: required key is missing"]),
+    ("missing_rotate_deg.json", &["instances[0].transform.rotate.deg: required key is missing"]),
+    // Values outside their range.
+    ("albedo_above_one.json", &["materials.white.albedo[1]", "outside [0, 1]"]),
+    ("albedo_negative.json", &["materials.white.albedo[0]", "outside [0, 1]"]),
+    ("reflectance_above_one.json", &["materials.gold.reflectance[2]", "outside [0, 1]"]),
+    ("roughness_negative.json", &["materials.gold.roughness", "outside [0, 1]"]),
+    ("roughness_above_one.json", &["materials.gold.roughness", "outside [0, 1]"]),
+    ("radiance_negative.json", &["materials.lamp.radiance[1]", "must not be negative"]),
+    ("ior_zero.json", &["materials.glass.ior", "must be positive"]),
+    ("ior_negative.json", &["materials.glass.ior", "must be positive"]),
+    ("box_min_equals_max.json", &["meshes.block.box", "not below max", "x axis"]),
+    ("box_min_above_max.json", &["meshes.block.box", "not below max"]),
+    ("scale_zero.json", &["instances[0].transform.scale", "must be positive"]),
+    ("scale_negative.json", &["instances[0].transform.scale", "must be positive"]),
+    ("scale_underflows_f32.json", &["instances[0].transform.scale", "must be positive (as a 32-bit float)"]),
+    ("axis_zero.json", &["instances[0].transform.rotate.axis", "zero length"]),
+    ("icosphere_radius_zero.json", &["meshes.ball.icosphere.radius", "must be positive"]),
+    ("icosphere_radius_negative.json", &["meshes.ball.icosphere.radius", "must be positive"]),
+    // Degenerate cameras.
+    ("camera_look_at_is_position.json", &["camera.look_at", "no viewing direction"]),
+    ("camera_up_parallel.json", &["camera.up", "parallel to the viewing direction"]),
+    ("camera_up_antiparallel.json", &["camera.up", "parallel to the viewing direction"]),
+    ("camera_up_zero.json", &["camera.up", "has no direction"]),
+    ("camera_look_straight_up_default_up.json", &["camera.up", "parallel to the viewing direction"]),
+    ("camera_fov_zero.json", &["camera.fov_y_deg", "strictly between 0 and 180"]),
+    ("camera_fov_180.json", &["camera.fov_y_deg", "strictly between 0 and 180"]),
+    ("camera_fov_negative.json", &["camera.fov_y_deg", "strictly between 0 and 180"]),
+    ("camera_width_zero.json", &["camera.width", "at least 1"]),
+    ("camera_height_zero.json", &["camera.height", "at least 1"]),
+    // Unknown names.
+    ("unknown_mesh_name.json", &["instances[0].mesh", "unknown mesh \"flor\"", "\"floor\""]),
+    ("unknown_material_name.json", &["instances[2].material", "unknown material \"golden\"", "\"gold\""]),
+    ("mesh_name_not_string.json", &["instances[0].mesh", "expected a string"]),
+    // Sizes that cannot be rendered.
+    ("image_too_wide.json", &["camera.width", "at most 16384"]),
+    ("image_too_tall.json", &["camera.height", "at most 16384"]),
+    ("image_width_1e10.json", &["camera.width", "at most 16384"]),
+    ("icosphere_9_levels.json", &["meshes.ball.icosphere.subdivisions", "at most 8"]),
+    ("icosphere_u32_max_levels.json", &["meshes.ball.icosphere.subdivisions", "at most 8"]),
+    ("menger_level_99.json", &["meshes.block.procedural.level", "at most 4"]),
+    ("knot_segments_u32_max.json", &["meshes.block.procedural", "more than the limit"]),
+    // Mesh sources.
+    ("two_mesh_sources.json", &["meshes.floor", "exactly one source, found quad and box"]),
+    ("smooth_on_quad.json", &["meshes.floor.smooth", "only to obj meshes"]),
+    ("quad_collinear.json", &["meshes.floor.quad", "degenerate quad"]),
+    ("quad_folded.json", &["meshes.floor.quad", "folded"]),
+    ("quad_three_points.json", &["meshes.floor.quad", "exactly 4 points, found 3"]),
+    // OBJ files: the scene key, the OBJ file, its line and the reason.
+    ("obj_index_past_vertices.json", &["meshes.block.obj", "obj_index_past_vertices.obj:6", "vertex index 4 points past the file's 3 vertices"]),
+    ("obj_index_zero.json", &["meshes.block.obj", "obj_index_zero.obj:4", "index 0 is invalid"]),
+    ("obj_negative_index_before_first.json", &["meshes.block.obj", "obj_negative_index_before_first.obj:4", "before the first vertex"]),
+    ("obj_index_huge.json", &["meshes.block.obj", "obj_index_huge.obj:4", "not an integer"]),
+    ("obj_normal_index_past.json", &["meshes.block.obj", "obj_normal_index_past.obj:5", "normal index 2 points past"]),
+    ("obj_bad_corner.json", &["meshes.block.obj", "obj_bad_corner.obj:4", "`1/1/1/1` is not one of"]),
+    ("obj_two_vertex_face.json", &["meshes.block.obj", "obj_two_vertex_face.obj:4", "at least 3 vertices"]),
+    ("obj_no_faces.json", &["meshes.block.obj", "obj_no_faces.obj", "no faces"]),
+    ("obj_empty.json", &["meshes.block.obj", "obj_empty.obj", "no faces"]),
+    ("obj_vertex_1e39.json", &["meshes.block.obj", "obj_vertex_1e39.obj:2", "not finite as a 32-bit float"]),
+    ("obj_vertex_nan.json", &["meshes.block.obj", "obj_vertex_nan.obj:2", "not finite"]),
+    ("obj_vertex_two_coordinates.json", &["meshes.block.obj", "obj_vertex_two_coordinates.obj:2", "needs 3 coordinates"]),
+    ("obj_smooth_without_normals.json", &["meshes.block.obj", "obj_smooth_without_normals.obj:4", "no vertex normals"]),
+    ("obj_smooth_zero_normal.json", &["meshes.block.obj", "obj_smooth_zero_normal.obj:5", "zero length"]),
+    ("obj_garbage_binary.json", &["meshes.block.obj", "obj_garbage_binary.obj"]),
+    ("obj_missing_file.json", &["meshes.block.obj", "does_not_exist.obj", "cannot read"]),
+    ("obj_path_is_a_folder.json", &["meshes.block.obj", "cannot read"]),
+    ("obj_path_empty.json", &["meshes.block.obj", "the OBJ path is empty"]),
+    // Estimators attached to instances.
+    ("est_missing_file.json", &["est_does_not_exist.nppp", "No such file"]),
+    ("est_path_empty.json", &["instances[3].estimator", "the estimator path is empty"]),
+    ("est_truncated.json", &["est_truncated.nppp", "truncated"]),
+    ("est_wrong_magic.json", &["est_wrong_magic.nppp", "not an nppp estimator file"]),
+    ("est_wrong_version.json", &["est_version_2.nppp", "version 2 not supported"]),
+    ("est_corrupted.json", &["est_corrupted.nppp", "checksum mismatch"]),
+    ("est_absurd_grid.json", &["est_absurd_grid.nppp", "absurd"]),
+    ("est_is_a_scene_file.json", &["ok_tiny.json", "not an nppp estimator file"]),
+    ("est_wrong_mesh.json", &["est_valid.nppp", "instances[2]", "trained for mesh \"ball\"", "uses mesh \"block\""]),
+    ("est_wrong_material.json", &["est_valid.nppp", "instances[3]", "material \"white\"", "material \"gold\""]),
+];
+
+/// Valid scenes of the corpus (positive controls), with what a render must print.
+const GOOD_SCENES: &[&str] = &["ok_tiny.json", "ok_estimator.json", "ok_radiance_3e38.json"];
+
+#[test]
+fn every_scene_error_is_clean_and_names_file_and_key() {
+    for (name, needles) in SCENES {
+        let path = file(name);
+        let shown = path.display().to_string();
+        let mut all = vec![shown.as_str()];
+        all.extend_from_slice(needles);
+        render_fails(name, &path, &[], &all);
+    }
+}
+
+/// The corpus and the table above stay in step: every file in the folder is
+/// used by a case, so a new crasher dropped in cannot be forgotten.
+#[test]
+fn every_corpus_file_has_a_case() {
+    let mut referenced: Vec<String> = SCENES.iter().map(|(n, _)| n.to_string()).collect();
+    referenced.extend(GOOD_SCENES.iter().map(|s| s.to_string()));
+    referenced.extend(ESTIMATORS.iter().map(|(n, _)| n.to_string()));
+    referenced.extend(DATASETS.iter().map(|(n, _)| n.to_string()));
+    referenced.push("README.md".into());
+    for entry in std::fs::read_dir(corpus()).unwrap() {
+        let name = entry.unwrap().file_name().to_string_lossy().into_owned();
+        // OBJ files belong to the scene of the same name.
+        let owner = name.strip_suffix(".obj").map(|s| format!("{s}.json")).unwrap_or_else(|| name.clone());
+        assert!(referenced.contains(&owner), "tests/bad_input/{name} is used by no case in bad_input.rs");
+    }
+}
+
+#[test]
+fn unreadable_scene_files_are_named() {
+    let missing = file("no_such_scene.json");
+    render_fails("missing-scene", &missing, &[], &[&missing.display().to_string(), "cannot read the scene file", "No such file"]);
+    let folder = corpus();
+    render_fails("scene-is-folder", &folder, &[], &[&folder.display().to_string(), "cannot read the scene file"]);
+}
+
+// ---------------------------------------------------------------------------
+// Flags and output paths
+// ---------------------------------------------------------------------------
+
+#[test]
+fn absurd_flags_are_rejected_before_rendering() {
+    let scene = file("ok_tiny.json");
+    render_fails("spp-0", &scene, &["--spp", "0"], &["--spp must be at least 1"]);
+    let dir = scratch("threads-0");
+    let out = dir.join("out.exr");
+    let o = nppp(["--threads".as_ref(), "0".as_ref(), "render".as_ref(), scene.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_clean_error("--threads 0", &o, &["--threads must be at least 1"]);
+    assert!(!out.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn unwritable_outputs_fail_cleanly() {
+    let scene = file("ok_tiny.json");
+    // A file that cannot be created.
+    let o = nppp(["render".as_ref(), scene.as_os_str(), "--quiet".as_ref(), "--out".as_ref(), "/proc/x.exr".as_ref()]);
+    assert_clean_error("--out /proc/x.exr", &o, &["/proc/x.exr"]);
+    // A folder in the way of the file, and a file in the way of a folder.
+    let dir = scratch("unwritable");
+    std::fs::create_dir(dir.join("taken.exr")).unwrap();
+    std::fs::write(dir.join("plain"), PREVIOUS).unwrap();
+    for out in [dir.join("taken.exr"), dir.join("plain/out.exr")] {
+        let o = nppp(["render".as_ref(), scene.as_os_str(), "--quiet".as_ref(), "--out".as_ref(), out.as_os_str()]);
+        assert_clean_error(&out.display().to_string(), &o, &[&out.display().to_string()]);
+    }
+    assert!(dir.join("taken.exr").is_dir());
+    assert_eq!(std::fs::read(dir.join("plain")).unwrap(), PREVIOUS);
+    let mut names: Vec<String> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    assert_eq!(names, ["plain", "taken.exr"], "temporary files left behind");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A render killed half way leaves the previous output in place, whole.
+#[test]
+fn interrupted_render_keeps_the_previous_output() {
+    let dir = scratch("interrupted");
+    let out = dir.join("out.exr");
+    std::fs::write(&out, PREVIOUS).unwrap();
+    let scene = file("ok_tiny.json");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_nppp"))
+        .args(["render".as_ref(), scene.as_os_str(), "--quiet".as_ref(), "--spp".as_ref(), "100000000".as_ref(), "--out".as_ref(), out.as_os_str()])
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(700));
+    assert!(child.try_wait().unwrap().is_none(), "the long render finished already");
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert_eq!(std::fs::read(&out).unwrap(), PREVIOUS);
+    let names: Vec<String> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    assert_eq!(names, ["out.exr"]);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Positive controls: the valid scenes render, replace the previous output
+/// with a finite EXR, and leave no temporary file. The tiny estimator has
+/// random decoder weights (its exits are nonsense) and the 3e38 lamp
+/// overflows some samples: the image is still finite and the dropped
+/// samples are reported.
+#[test]
+fn valid_scenes_render_finite_images() {
+    for (name, must_say) in [("ok_tiny.json", ""), ("ok_estimator.json", "estimators (Neural"), ("ok_radiance_3e38.json", "non-finite samples dropped")] {
+        let dir = scratch(name);
+        let out = dir.join("out.exr");
+        std::fs::write(&out, PREVIOUS).unwrap();
+        let o = nppp(["render".as_ref(), file(name).as_os_str(), "--quiet".as_ref(), "--out".as_ref(), out.as_os_str()]);
+        assert_eq!(o.status.code(), Some(0), "{name}: {}", text(&o));
+        assert!(text(&o).contains(must_say), "{name}: stderr lacks {must_say:?}:\n{}", text(&o));
+        let img = nppp_render::image_io::read_exr(&out).unwrap();
+        assert_eq!((img.width, img.height), (8, 8));
+        assert!(img.pixels.iter().flatten().all(|c| c.is_finite() && *c >= 0.0), "{name}: non-finite pixel");
+        assert!(img.mean().iter().sum::<f64>() > 0.0, "{name}: black image");
+        let names: Vec<String> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        assert_eq!(names, ["out.exr"], "{name}: files left behind");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Estimator (.nppp) and training-data (.nppd) files
+// ---------------------------------------------------------------------------
+
+/// Estimator files for `nppp info`.
+const ESTIMATORS: &[(&str, &[&str])] = &[
+    ("est_valid.nppp", &[]),
+    ("est_empty.nppp", &["truncated", "file is 0 bytes"]),
+    ("est_truncated.nppp", &["truncated: header says", "decoder layer 0"]),
+    ("est_truncated_in_header.nppp", &["truncated: header says"]),
+    ("est_wrong_magic.nppp", &["not an nppp estimator file (wrong magic"]),
+    ("est_garbage.nppp", &["not an nppp estimator file (wrong magic"]),
+    ("est_version_2.nppp", &["version 2 not supported (this build reads 1)"]),
+    ("est_corrupted.nppp", &["checksum mismatch (file corrupted)"]),
+    ("est_absurd_grid.nppp", &["latent grid: resolution 65535", "absurd"]),
+    ("est_huge_claim.nppp", &["truncated: header says 2000000000000 latent bytes"]),
+    ("est_header_length_huge.nppp", &["header length 4294967295 is absurd"]),
+    ("est_trailing_bytes.nppp", &["1 bytes after the last section"]),
+    ("est_nan_sphere.nppp", &["bounding sphere"]),
+    ("est_unknown_header_field.nppp", &["invalid header", "unknown field"]),
+];
+
+#[test]
+fn estimator_files_give_clear_errors() {
+    for (name, needles) in ESTIMATORS {
+        let path = file(name);
+        let o = nppp(["info".as_ref(), path.as_os_str()]);
+        if needles.is_empty() {
+            assert_eq!(o.status.code(), Some(0), "{name}: {}", text(&o));
+            assert!(String::from_utf8_lossy(&o.stdout).contains("mesh:      ball"));
+            continue;
+        }
+        let shown = path.display().to_string();
+        let mut all = vec![shown.as_str()];
+        all.extend_from_slice(needles);
+        assert_clean_error(name, &o, &all);
+    }
+}
+
+/// Training-data files for `nppp train`.
+const DATASETS: &[(&str, &[&str])] = &[
+    ("data_valid.nppd", &[]),
+    ("data_empty.nppd", &["truncated: file is 0 bytes"]),
+    ("data_truncated.nppd", &["no chunk index at the end"]),
+    ("data_truncated_in_header.nppd", &["truncated: header says"]),
+    ("data_wrong_magic.nppd", &["not an nppp training-data file (wrong magic"]),
+    ("data_version_2.nppd", &["version 2 not supported"]),
+    ("data_corrupted_header.nppd", &["invalid header: checksum mismatch"]),
+    ("data_corrupted_chunk.nppd", &["chunk 1 (at byte", "checksum mismatch (file corrupted)"]),
+    ("data_chunk_claims_4gib.nppd", &["chunk 0 (at byte", "chunk claims 4294967295 uncompressed bytes"]),
+    ("data_index_offset_overflow.nppd", &["chunk index entry 1 points at byte 18446744073709551610"]),
+    ("data_k_zero.nppd", &["invalid header: k = 0"]),
+];
+
+#[test]
+fn dataset_files_give_clear_errors() {
+    for (name, needles) in DATASETS.iter().filter(|(_, n)| !n.is_empty()) {
+        let path = file(name);
+        let dir = scratch(name);
+        let model = dir.join("model");
+        let o = nppp(["train".as_ref(), "--data".as_ref(), path.as_os_str(), "--out".as_ref(), model.as_os_str(), "--quiet".as_ref()]);
+        let shown = path.display().to_string();
+        let mut all = vec![shown.as_str()];
+        all.extend_from_slice(needles);
+        assert_clean_error(name, &o, &all);
+        assert!(!model.exists(), "{name}: a model folder was created");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
+
+/// The binary fixtures are what their names say: the valid ones load, so
+/// the damaged ones fail for their damage and not for a stale format.
+#[test]
+fn valid_binary_fixtures_load() {
+    let est = BakedEstimator::load(&file("est_valid.nppp")).unwrap();
+    assert_eq!(est.meta.mesh_name, "ball");
+    let mut r = DatasetReader::open(&file("data_valid.nppd")).unwrap();
+    assert_eq!(r.read_all().unwrap().len(), 10);
+    for (name, _) in ESTIMATORS.iter().chain(DATASETS) {
+        let len = std::fs::metadata(file(name)).unwrap().len();
+        assert!(len < 100_000, "{name} is {len} bytes: keep fixtures small");
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Fixture generation
+// ---------------------------------------------------------------------------
+
+/// CRC32 (IEEE), as the file formats use; bitwise, fixtures are tiny.
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut c = !0u32;
+    for &b in bytes {
+        c ^= b as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 { (c >> 1) ^ 0xEDB8_8320 } else { c >> 1 };
+        }
+    }
+    !c
+}
+
+fn le32(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(b[at..at + 4].try_into().unwrap())
+}
+
+/// The tiny estimator: trained (nominally) for `ball` with material `white`
+/// of ok_estimator.json; 2^4-node grids, one decoder layer of random weights.
+fn tiny_estimator() -> BakedEstimator {
+    let scene = nppp_scene::load_scene(&file("ok_estimator.json")).unwrap();
+    let mesh = &scene.meshes[scene.mesh_names.iter().position(|n| n == "ball").unwrap()];
+    let material = &scene.materials[scene.material_names.iter().position(|n| n == "white").unwrap()];
+    let mut seed = 12345u32;
+    let mut rnd = move || {
+        seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+        (seed >> 8) as f32 / (1 << 24) as f32 - 0.5
+    };
+    let (latent_dim, noise_dim, res) = (2u32, 2u32, 2u32);
+    let nodes = (res as usize).pow(4);
+    let latent: Vec<f32> = (0..nodes * latent_dim as usize).map(|_| rnd()).collect();
+    // Logits > 0: every ray that meets the sphere "hits", so renders use the decoder.
+    let mask: Vec<f32> = (0..nodes).map(|_| 4.0 + rnd()).collect();
+    let inputs = (latent_dim + noise_dim) as usize;
+    let outputs = nppp_estimator::EXIT_FEATURES;
+    let decoder = Mlp {
+        layers: vec![Dense { inputs, outputs, weight: (0..inputs * outputs).map(|_| rnd()).collect(), bias: (0..outputs).map(|_| rnd()).collect() }],
+    };
+    let meta = EstimatorMeta {
+        mesh_name: "ball".into(),
+        mesh_hash: nppp_scene::mesh_content_hash(mesh),
+        material_name: "white".into(),
+        material_hash: nppp_scene::material_content_hash(material),
+        sphere: BoundingSphere::around(&mesh.positions, 0.01),
+        latent_dim,
+        noise_dim,
+        max_internal_bounces: 8,
+        notes: "tests/bad_input fixture: random weights".into(),
+    };
+    BakedEstimator::from_f32_grids(meta, res, &latent, res, &mask, 8, decoder, ExitTransform::default()).unwrap()
+}
+
+/// Replaces an estimator file's JSON header and fixes its checksum.
+fn est_with_header(good: &[u8], edit: impl Fn(&mut serde_json::Value)) -> Vec<u8> {
+    let hlen = le32(good, 16) as usize;
+    let mut v: serde_json::Value = serde_json::from_slice(&good[20..20 + hlen]).unwrap();
+    edit(&mut v);
+    let json = serde_json::to_vec(&v).unwrap();
+    let mut out = good[..16].to_vec();
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(&json);
+    out.extend_from_slice(&good[20 + hlen..]);
+    est_fix_crc(&mut out);
+    out
+}
+
+fn est_fix_crc(b: &mut [u8]) {
+    let crc = crc32(&b[16..]);
+    b[12..16].copy_from_slice(&crc.to_le_bytes());
+}
+
+fn write_estimators() {
+    let good = tiny_estimator().to_bytes();
+    let hlen = le32(&good, 16) as usize;
+    let w = |name: &str, bytes: &[u8]| std::fs::write(file(name), bytes).unwrap();
+    w("est_valid.nppp", &good);
+    w("est_empty.nppp", &[]);
+    w("est_truncated.nppp", &good[..good.len() - 20]);
+    w("est_truncated_in_header.nppp", &good[..40]);
+    let mut b = good.clone();
+    b[..8].copy_from_slice(b"NPPPDAT\0");
+    w("est_wrong_magic.nppp", &b);
+    let mut seed = 99u32;
+    let garbage: Vec<u8> = (0..1024)
+        .map(|_| {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (seed >> 24) as u8
+        })
+        .collect();
+    w("est_garbage.nppp", &garbage);
+    let mut b = good.clone();
+    b[8..12].copy_from_slice(&2u32.to_le_bytes());
+    w("est_version_2.nppp", &b);
+    let mut b = good.clone();
+    let last = b.len() - 3;
+    b[last] ^= 0x40;
+    w("est_corrupted.nppp", &b);
+    w("est_absurd_grid.nppp", &est_with_header(&good, |v| v["latent"]["res"] = 65535.into()));
+    w("est_huge_claim.nppp", &est_with_header(&good, |v| v["latent"]["res"] = 1000.into()));
+    let mut b = good.clone();
+    b[16..20].copy_from_slice(&u32::MAX.to_le_bytes());
+    est_fix_crc(&mut b);
+    w("est_header_length_huge.nppp", &b);
+    let mut b = good.clone();
+    b.push(0);
+    est_fix_crc(&mut b);
+    w("est_trailing_bytes.nppp", &b);
+    let mut b = good.clone();
+    let radius = 20 + hlen + 12;
+    b[radius..radius + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    est_fix_crc(&mut b);
+    w("est_nan_sphere.nppp", &b);
+    w("est_unknown_header_field.nppp", &est_with_header(&good, |v| v["extra"] = 1.into()));
+}
+
+fn tiny_dataset(path: &Path) {
+    let header = DatasetHeader {
+        mesh_name: "ball".into(),
+        mesh_hash: 1,
+        material_name: "white".into(),
+        material_hash: 2,
+        material_json: r#"{"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}"#.into(),
+        sphere: BoundingSphere { center: Vec3::ZERO, radius: 1.0 },
+        k: 2,
+        seed: 0,
+        max_internal_bounces: 8,
+    };
+    let mut wr = DatasetWriter::create_with(path, header, WriterOptions { chunk_rays: 4, compress: false }).unwrap();
+    for i in 0..10u32 {
+        let f = i as f32 / 10.0;
+        let hit = i % 2 == 0;
+        let exit = Exit { position: Vec3::new(0.0, 0.0, 1.0), direction: Vec3::new(f, 0.0, 1.0).normalize(), throughput: Vec3::splat(0.5), radiance: Vec3::ZERO, bounces: i % 3 };
+        let exits = if hit { vec![exit; 2] } else { vec![] };
+        wr.write(&RayRecord { pair: SpherePair([f, 0.5, 1.0 - f, 0.25]), hit, exits }).unwrap();
+    }
+    wr.finish().unwrap();
+}
+
+fn write_datasets() {
+    let valid = file("data_valid.nppd");
+    tiny_dataset(&valid);
+    let good = std::fs::read(&valid).unwrap();
+    let w = |name: &str, bytes: &[u8]| std::fs::write(file(name), bytes).unwrap();
+    let hlen = le32(&good, 12) as usize;
+    let data_start = 16 + hlen + 4;
+    w("data_empty.nppd", &[]);
+    w("data_truncated.nppd", &good[..good.len() / 2]);
+    w("data_truncated_in_header.nppd", &good[..30]);
+    let mut b = good.clone();
+    b[..8].copy_from_slice(b"NPPPEST\0");
+    w("data_wrong_magic.nppd", &b);
+    let mut b = good.clone();
+    b[8..12].copy_from_slice(&2u32.to_le_bytes());
+    w("data_version_2.nppd", &b);
+    let mut b = good.clone();
+    b[20] ^= 0x01;
+    w("data_corrupted_header.nppd", &b);
+    // Chunks are 28-byte headers followed by their payload; chunk 1 starts after chunk 0.
+    let chunk0 = data_start;
+    let chunk1 = chunk0 + 28 + le32(&good, chunk0 + 16) as usize;
+    let mut b = good.clone();
+    b[chunk1 + 28 + 5] ^= 0x01;
+    w("data_corrupted_chunk.nppd", &b);
+    // A chunk claiming 4 GiB uncompressed, its own checksum fixed.
+    let mut b = good.clone();
+    b[chunk0 + 20..chunk0 + 24].copy_from_slice(&u32::MAX.to_le_bytes());
+    let stored = le32(&b, chunk0 + 16) as usize;
+    let mut covered = b[chunk0 + 4..chunk0 + 24].to_vec();
+    covered.extend_from_slice(&b[chunk0 + 28..chunk0 + 28 + stored]);
+    let crc = crc32(&covered);
+    b[chunk0 + 24..chunk0 + 28].copy_from_slice(&crc.to_le_bytes());
+    w("data_chunk_claims_4gib.nppd", &b);
+    // Index entry 1 at an offset near u64::MAX (offset + header overflows), checksum fixed.
+    let mut b = good.clone();
+    let n = b.len();
+    let index_offset = u64::from_le_bytes(b[n - 40..n - 32].try_into().unwrap()) as usize;
+    b[index_offset + 16..index_offset + 24].copy_from_slice(&(u64::MAX - 5).to_le_bytes());
+    let crc = crc32(&b[index_offset..n - 8]);
+    b[n - 8..n - 4].copy_from_slice(&crc.to_le_bytes());
+    w("data_index_offset_overflow.nppd", &b);
+    // k = 0 in the header, header checksum fixed.
+    let mut v: serde_json::Value = serde_json::from_slice(&good[16..16 + hlen]).unwrap();
+    v["k"] = 0.into();
+    let json = serde_json::to_vec(&v).unwrap();
+    let mut b = good[..12].to_vec();
+    b.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    b.extend_from_slice(&json);
+    let crc = crc32(&b[8..]);
+    b.extend_from_slice(&crc.to_le_bytes());
+    // The rest keeps its offsets only if the header length is unchanged; it is (same digits).
+    assert_eq!(json.len(), hlen, "k edit changed the header length");
+    b.extend_from_slice(&good[data_start..]);
+    w("data_k_zero.nppd", &b);
+}
+
+/// Rewrites the binary fixtures. Run after a file-format change:
+/// `cargo test -p nppp-cli --test bad_input -- --ignored regenerate`.
+#[test]
+#[ignore]
+fn regenerate_binary_fixtures() {
+    write_estimators();
+    write_datasets();
+}
