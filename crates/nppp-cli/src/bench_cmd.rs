@@ -30,7 +30,7 @@ const NPPP_P: [u32; 4] = [0, 1, 2, 3];
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
-    /// A few minutes on 2 cores: half resolution, spp 4,16,64, a 256-spp
+    /// A few minutes on 2 cores: half resolution, spp 4,16,64, a 512-spp
     /// reference, one seed. Without it: full resolution, spp 4..1024, a
     /// 4096-spp reference, three seeds (hours on 2 cores).
     #[arg(long)]
@@ -82,12 +82,18 @@ struct Plan {
 
 impl Plan {
     fn from_args(a: &BenchArgs) -> Result<Self> {
-        let (mode, ladder, reference_spp, seeds, scale) =
-            if a.quick { ("quick", vec![4, 16, 64], 256, 1, 0.5) } else { ("full", vec![4, 16, 64, 256, 1024], 4096, 3, 1.0) };
+        let (mode, ladder, reference_spp, seeds, scale) = if a.quick {
+            ("quick", vec![4, 16, 64], 512, 1, 0.5)
+        } else {
+            ("full", vec![4, 16, 64, 256, 1024], 4096, 3, 1.0)
+        };
         let mut ladder = a.spp.clone().unwrap_or(ladder);
         ladder.sort_unstable();
         ladder.dedup();
-        ensure!(!ladder.is_empty() && ladder[0] >= 1, "--spp needs at least one value, each at least 1");
+        ensure!(
+            !ladder.is_empty() && ladder[0] >= 1,
+            "--spp needs at least one value, each at least 1"
+        );
         let plan = Plan {
             mode,
             ladder,
@@ -95,9 +101,15 @@ impl Plan {
             seeds: a.seeds.unwrap_or(seeds),
             scale: a.scale.unwrap_or(scale),
         };
-        ensure!(plan.reference_spp >= 2, "--reference-spp must be at least 2 (it is rendered as two halves)");
+        ensure!(
+            plan.reference_spp >= 2,
+            "--reference-spp must be at least 2 (it is rendered as two halves)"
+        );
         ensure!(plan.seeds >= 1, "--seeds must be at least 1");
-        ensure!(plan.scale.is_finite() && plan.scale > 0.0 && plan.scale <= 4.0, "--scale must be in (0, 4]");
+        ensure!(
+            plan.scale.is_finite() && plan.scale > 0.0 && plan.scale <= 4.0,
+            "--scale must be in (0, 4]"
+        );
         ensure!(a.max_bounces >= 1, "--max-bounces must be at least 1");
         Ok(plan)
     }
@@ -143,6 +155,9 @@ struct Measurement {
     samples: u64,
     errors: Errors,
     flip: Option<f64>,
+    /// Mean of the image over the reference's mean (all channels): the bias
+    /// an error number alone does not show.
+    mean_ratio: f64,
     estimator_bytes: usize,
     stats: EstimatorStats,
 }
@@ -159,6 +174,7 @@ struct Cell {
     mape: f64,
     rmse: f64,
     flip: Option<f64>,
+    mean_ratio: f64,
     estimator_bytes: usize,
 }
 
@@ -212,9 +228,15 @@ struct SceneResult {
 
 pub fn run(a: &BenchArgs) -> Result<()> {
     let plan = Plan::from_args(a)?;
-    let names: Vec<String> = a.scenes.clone().unwrap_or_else(|| DEFAULT_SCENES.iter().map(|s| s.to_string()).collect());
+    let names: Vec<String> = a
+        .scenes
+        .clone()
+        .unwrap_or_else(|| DEFAULT_SCENES.iter().map(|s| s.to_string()).collect());
     ensure!(!names.is_empty(), "--scenes is empty");
-    let paths: Vec<PathBuf> = names.iter().map(|n| resolve_scene(&a.scenes_dir, n)).collect::<Result<_>>()?;
+    let paths: Vec<PathBuf> = names
+        .iter()
+        .map(|n| resolve_scene(&a.scenes_dir, n))
+        .collect::<Result<_>>()?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let machine = Machine::probe();
     eprintln!(
@@ -230,19 +252,29 @@ pub fn run(a: &BenchArgs) -> Result<()> {
     let t0 = Instant::now();
     let mut results = Vec::new();
     for path in &paths {
-        results.push(bench_scene(a, &plan, path).with_context(|| format!("benchmarking {}", path.display()))?);
+        results.push(
+            bench_scene(a, &plan, path)
+                .with_context(|| format!("benchmarking {}", path.display()))?,
+        );
     }
     let total = t0.elapsed().as_secs_f64();
     let md = report_markdown(a, &plan, &machine, &results, total);
     let md_path = a.out.join("results.md");
-    image_io::write_text(&md_path, &md).with_context(|| format!("writing {}", md_path.display()))?;
+    image_io::write_text(&md_path, &md)
+        .with_context(|| format!("writing {}", md_path.display()))?;
     let csv_path = a.out.join("results.csv");
-    image_io::write_text(&csv_path, &report_csv(&results)).with_context(|| format!("writing {}", csv_path.display()))?;
+    image_io::write_text(&csv_path, &report_csv(&results))
+        .with_context(|| format!("writing {}", csv_path.display()))?;
     let mut plots = Vec::new();
     for r in &results {
         plots.extend(plot_scene(r, &a.out)?);
     }
-    eprintln!("bench done in {:.0} s: {} and {}", total, md_path.display(), csv_path.display());
+    eprintln!(
+        "bench done in {:.0} s: {} and {}",
+        total,
+        md_path.display(),
+        csv_path.display()
+    );
     for p in plots {
         eprintln!("  plot: {p}");
     }
@@ -250,7 +282,11 @@ pub fn run(a: &BenchArgs) -> Result<()> {
 }
 
 fn resolve_scene(dir: &Path, name: &str) -> Result<PathBuf> {
-    let p = if name.ends_with(".json") || name.contains('/') { PathBuf::from(name) } else { dir.join(format!("{name}.json")) };
+    let p = if name.ends_with(".json") || name.contains('/') {
+        PathBuf::from(name)
+    } else {
+        dir.join(format!("{name}.json"))
+    };
     ensure!(
         p.is_file(),
         "{}: scene not found (run nppp bench from the repository root, or pass --scenes-dir or a path in --scenes)",
@@ -259,8 +295,31 @@ fn resolve_scene(dir: &Path, name: &str) -> Result<PathBuf> {
     Ok(p)
 }
 
+/// `data/scenes/../../models/x` -> `models/x`, lexically (for messages and
+/// the report; the file system is not consulted).
+fn tidy_path(p: &Path) -> PathBuf {
+    use std::path::Component;
+    let mut out: Vec<Component> = Vec::new();
+    for c in p.components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir if matches!(out.last(), Some(Component::Normal(_))) => {
+                out.pop();
+            }
+            c => out.push(c),
+        }
+    }
+    if out.is_empty() {
+        PathBuf::from(".")
+    } else {
+        out.iter().collect()
+    }
+}
+
 fn scene_name(path: &Path) -> String {
-    path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into())
+    path.file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene".into())
 }
 
 /// FNV-1a, 64 bits: a stable hash of the inputs of a reference.
@@ -286,8 +345,28 @@ fn scene_hash(path: &Path, scene: &nppp_scene::Scene) -> Result<String> {
     Ok(format!("{h:016x}"))
 }
 
-fn render_with(rs: &RenderScene, spp: u32, max_bounces: u32, seed: u64) -> (Image, nppp_render::RenderStats) {
-    nppp_render::render(rs, &RenderOptions { spp, max_bounces, seed, progress: false })
+fn image_sum(img: &Image) -> f64 {
+    img.pixels
+        .iter()
+        .map(|p| p.iter().map(|&c| c as f64).sum::<f64>())
+        .sum()
+}
+
+fn render_with(
+    rs: &RenderScene,
+    spp: u32,
+    max_bounces: u32,
+    seed: u64,
+) -> (Image, nppp_render::RenderStats) {
+    nppp_render::render(
+        rs,
+        &RenderOptions {
+            spp,
+            max_bounces,
+            seed,
+            progress: false,
+        },
+    )
 }
 
 fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
@@ -306,7 +385,11 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     let mut rs = RenderScene::new(&scene);
     let build_seconds = t_build.elapsed().as_secs_f64();
     let triangles_unique: u64 = scene.meshes.iter().map(|m| m.triangles.len() as u64).sum();
-    let triangles_instanced: u64 = scene.instances.iter().map(|i| scene.meshes[i.mesh].triangles.len() as u64).sum();
+    let triangles_instanced: u64 = scene
+        .instances
+        .iter()
+        .map(|i| scene.meshes[i.mesh].triangles.len() as u64)
+        .sum();
     eprintln!(
         "[{name}] {width}x{height}, {} instances, {triangles_instanced} instanced triangles, scene built in {build_seconds:.2} s",
         scene.instances.len()
@@ -326,42 +409,75 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         seconds: 0.0,
         noise_floor_rel_mse: 0.0,
     };
-    let (reference, reference_meta, reference_cached) = load_or_render_reference(a, &rs, &dir, &name, &want)?;
+    let (reference, reference_meta, reference_cached) =
+        load_or_render_reference(a, &rs, &dir, &name, &want)?;
 
     // Estimators: the scene's own files, checked before any configuration runs.
-    let mut estimator_files: Vec<PathBuf> = scene.instances.iter().filter_map(|i| i.estimator.clone()).collect();
+    let mut estimator_files: Vec<PathBuf> = scene
+        .instances
+        .iter()
+        .filter_map(|i| i.estimator.as_deref().map(tidy_path))
+        .collect();
     estimator_files.sort();
     estimator_files.dedup();
-    let estimator_instances = scene.instances.iter().filter(|i| i.estimator.is_some()).count();
-    let mut configs: Vec<Config> = (1..=m).map(|mm| Config { kind: Kind::Pt, m: mm, p: 0 }).collect();
+    let estimator_instances = scene
+        .instances
+        .iter()
+        .filter(|i| i.estimator.is_some())
+        .count();
+    let mut configs: Vec<Config> = (1..=m)
+        .map(|mm| Config {
+            kind: Kind::Pt,
+            m: mm,
+            p: 0,
+        })
+        .collect();
     let mut skipped = Vec::new();
     let ps: Vec<u32> = NPPP_P.iter().copied().filter(|&p| p < m).collect();
     let mut neural: Option<Estimators> = None;
     if estimator_files.is_empty() {
-        skipped.push(("NPPP (all P)".to_string(), "skipped: no estimator (no instance of the scene names one)".to_string()));
+        skipped.push((
+            "NPPP (all P)".to_string(),
+            "skipped: no estimator (no instance of the scene names one)".to_string(),
+        ));
     } else if let Some(missing) = estimator_files.iter().find(|f| !f.is_file()) {
         skipped.push((
             "NPPP (all P)".to_string(),
-            format!("skipped: no estimator ({} does not exist; see BENCHMARKS.md for how to build it)", missing.display()),
+            format!(
+                "skipped: no estimator ({} does not exist; see BENCHMARKS.md for how to build it)",
+                missing.display()
+            ),
         ));
     } else {
         match Estimators::load(&scene, EstimatorMode::Neural, 0) {
             Ok(Some(e)) => {
                 neural = Some(e);
-                configs.extend(ps.iter().map(|&p| Config { kind: Kind::Nppp, m, p }));
+                configs.extend(ps.iter().map(|&p| Config {
+                    kind: Kind::Nppp,
+                    m,
+                    p,
+                }));
             }
             Ok(None) => skipped.push(("NPPP (all P)".into(), "skipped: no estimator".into())),
             Err(e) => {
                 eprintln!("[{name}] warning: the estimators do not load: {e}");
-                skipped.push(("NPPP (all P)".into(), format!("skipped: the estimator does not load: {e}")));
+                skipped.push((
+                    "NPPP (all P)".into(),
+                    format!("skipped: the estimator does not load: {e}"),
+                ));
             }
         }
     }
     let mut oracle: Option<Estimators> = None;
     if a.oracle && !estimator_files.is_empty() {
-        oracle = Estimators::load(&scene, EstimatorMode::Oracle, 0).with_context(|| format!("{}: oracle estimators", path.display()))?;
+        oracle = Estimators::load(&scene, EstimatorMode::Oracle, 0)
+            .with_context(|| format!("{}: oracle estimators", path.display()))?;
         if oracle.is_some() {
-            configs.extend(ps.iter().map(|&p| Config { kind: Kind::Oracle, m, p }));
+            configs.extend(ps.iter().map(|&p| Config {
+                kind: Kind::Oracle,
+                m,
+                p,
+            }));
         }
     }
 
@@ -380,8 +496,10 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
                 let estimator_bytes = attach(&mut rs, c, &mut neural, &mut oracle);
                 let (img, stats) = render_with(&rs, spp, c.m, seed);
                 detach(&mut rs, c, &mut neural, &mut oracle);
-                let errors = metrics::compare(&img, &reference).with_context(|| format!("{name}: comparing {} to the reference", c.label()))?;
+                let errors = metrics::compare(&img, &reference)
+                    .with_context(|| format!("{name}: comparing {} to the reference", c.label()))?;
                 let flip = flip_mean(&img, &reference);
+                let mean_ratio = image_sum(&img) / image_sum(&reference).max(1e-300);
                 eprintln!(
                     "[{name}] seed {seed} {:>4} spp {:<12} {:>8.3} s {:>7.3} M samples/s  relMSE {:.4e} (trimmed {:.4e})",
                     spp,
@@ -393,7 +511,8 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
                 );
                 if seed == 1 && spp == top {
                     let p = dir.join(format!("{}-{spp}spp.png", c.slug()));
-                    image_io::write_png(&img, &p).with_context(|| format!("writing {}", p.display()))?;
+                    image_io::write_png(&img, &p)
+                        .with_context(|| format!("writing {}", p.display()))?;
                 }
                 measurements.push(Measurement {
                     config: ci,
@@ -403,6 +522,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
                     samples: stats.samples,
                     errors,
                     flip,
+                    mean_ratio,
                     estimator_bytes,
                     stats: stats.estimators,
                 });
@@ -430,7 +550,12 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
 
 /// Puts the configuration's estimators (with its P) into the scene; returns
 /// their memory.
-fn attach(rs: &mut RenderScene, c: &Config, neural: &mut Option<Estimators>, oracle: &mut Option<Estimators>) -> usize {
+fn attach(
+    rs: &mut RenderScene,
+    c: &Config,
+    neural: &mut Option<Estimators>,
+    oracle: &mut Option<Estimators>,
+) -> usize {
     let src = match c.kind {
         Kind::Pt => None,
         Kind::Nppp => neural.take(),
@@ -440,10 +565,18 @@ fn attach(rs: &mut RenderScene, c: &Config, neural: &mut Option<Estimators>, ora
         e.min_bounces = c.p;
         e
     });
-    rs.estimators.as_ref().map(|e| e.memory_bytes()).unwrap_or(0)
+    rs.estimators
+        .as_ref()
+        .map(|e| e.memory_bytes())
+        .unwrap_or(0)
 }
 
-fn detach(rs: &mut RenderScene, c: &Config, neural: &mut Option<Estimators>, oracle: &mut Option<Estimators>) {
+fn detach(
+    rs: &mut RenderScene,
+    c: &Config,
+    neural: &mut Option<Estimators>,
+    oracle: &mut Option<Estimators>,
+) {
     let e = rs.estimators.take();
     match c.kind {
         Kind::Pt => {}
@@ -462,24 +595,42 @@ fn load_or_render_reference(
     let exr = dir.join("reference.exr");
     let json = dir.join("reference.json");
     if !a.fresh_reference && exr.is_file() && json.is_file() {
-        let text = std::fs::read_to_string(&json).with_context(|| format!("reading {}", json.display()))?;
+        let text = std::fs::read_to_string(&json)
+            .with_context(|| format!("reading {}", json.display()))?;
         match serde_json::from_str::<ReferenceMeta>(&text) {
             Ok(have) if have.same_settings(want) => {
-                let img = image_io::read_exr(&exr).with_context(|| format!("reading the cached reference {}", exr.display()))?;
+                let img = image_io::read_exr(&exr)
+                    .with_context(|| format!("reading the cached reference {}", exr.display()))?;
                 if img.width == want.width && img.height == want.height {
-                    eprintln!("[{name}] reference: cached {} ({} spp, settings match)", exr.display(), have.spp);
+                    eprintln!(
+                        "[{name}] reference: cached {} ({} spp, settings match)",
+                        exr.display(),
+                        have.spp
+                    );
                     return Ok((img, have, true));
                 }
-                eprintln!("[{name}] reference: {} has the wrong size; re-rendering", exr.display());
+                eprintln!(
+                    "[{name}] reference: {} has the wrong size; re-rendering",
+                    exr.display()
+                );
             }
-            Ok(_) => eprintln!("[{name}] reference: {} was made with other settings; re-rendering", json.display()),
-            Err(e) => eprintln!("[{name}] reference: {} is unreadable ({e}); re-rendering", json.display()),
+            Ok(_) => eprintln!(
+                "[{name}] reference: {} was made with other settings; re-rendering",
+                json.display()
+            ),
+            Err(e) => eprintln!(
+                "[{name}] reference: {} is unreadable ({e}); re-rendering",
+                json.display()
+            ),
         }
     }
     // Two independent halves: their difference estimates the reference's own noise.
     let rs_ref = rs;
     let half = want.spp / 2;
-    eprintln!("[{name}] reference: rendering PT M={} at {} spp (two halves of {half})...", want.max_bounces, want.spp);
+    eprintln!(
+        "[{name}] reference: rendering PT M={} at {} spp (two halves of {half})...",
+        want.max_bounces, want.spp
+    );
     let (ia, sa) = render_with(rs_ref, half, want.max_bounces, want.seeds[0]);
     let (ib, sb) = render_with(rs_ref, want.spp - half, want.max_bounces, want.seeds[1]);
     let wa = half as f64 / want.spp as f64;
@@ -502,8 +653,12 @@ fn load_or_render_reference(
     let png = dir.join("reference.png");
     image_io::write_png(&img, &png).with_context(|| format!("writing {}", png.display()))?;
     let text = serde_json::to_string_pretty(&meta).context("serializing the reference settings")?;
-    image_io::write_text(&json, &(text + "\n")).with_context(|| format!("writing {}", json.display()))?;
-    eprintln!("[{name}] reference: {:.1} s, noise floor relMSE {:.3e}", meta.seconds, floor);
+    image_io::write_text(&json, &(text + "\n"))
+        .with_context(|| format!("writing {}", json.display()))?;
+    eprintln!(
+        "[{name}] reference: {:.1} s, noise floor relMSE {:.3e}",
+        meta.seconds, floor
+    );
     Ok((img, meta, false))
 }
 
@@ -519,14 +674,26 @@ fn flip_mean(img: &Image, reference: &Image) -> Option<f64> {
     }
     fn srgb8(img: &Image) -> nv_flip::FlipImageRgb8 {
         let enc = |x: f32| {
-            let x = if x.is_finite() { x.clamp(0.0, 1.0) } else { 0.0 };
-            let y = if x <= 0.003_130_8 { 12.92 * x } else { 1.055 * x.powf(1.0 / 2.4) - 0.055 };
+            let x = if x.is_finite() {
+                x.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            let y = if x <= 0.003_130_8 {
+                12.92 * x
+            } else {
+                1.055 * x.powf(1.0 / 2.4) - 0.055
+            };
             (y * 255.0 + 0.5) as u8
         };
         let data: Vec<u8> = img.pixels.iter().flat_map(|p| p.map(enc)).collect();
         nv_flip::FlipImageRgb8::with_data(img.width, img.height, &data)
     }
-    let map = nv_flip::flip(srgb8(reference), srgb8(img), nv_flip::DEFAULT_PIXELS_PER_DEGREE);
+    let map = nv_flip::flip(
+        srgb8(reference),
+        srgb8(img),
+        nv_flip::DEFAULT_PIXELS_PER_DEGREE,
+    );
     let v = map.to_vec();
     Some(v.iter().map(|&x| x as f64).sum::<f64>() / v.len().max(1) as f64)
 }
@@ -546,13 +713,20 @@ fn cells(r: &SceneResult, config: usize, ladder: &[u32]) -> Vec<Cell> {
     ladder
         .iter()
         .filter_map(|&spp| {
-            let ms: Vec<&Measurement> = r.measurements.iter().filter(|m| m.config == config && m.spp == spp).collect();
+            let ms: Vec<&Measurement> = r
+                .measurements
+                .iter()
+                .filter(|m| m.config == config && m.spp == spp)
+                .collect();
             if ms.is_empty() {
                 return None;
             }
             let rel: Vec<f64> = ms.iter().map(|m| m.errors.rel_mse).collect();
             let mu = mean(&rel);
-            let sd = (rel.len() > 1).then(|| (rel.iter().map(|x| (x - mu) * (x - mu)).sum::<f64>() / (rel.len() - 1) as f64).sqrt());
+            let sd = (rel.len() > 1).then(|| {
+                (rel.iter().map(|x| (x - mu) * (x - mu)).sum::<f64>() / (rel.len() - 1) as f64)
+                    .sqrt()
+            });
             let seconds = mean(&ms.iter().map(|m| m.seconds).collect::<Vec<_>>());
             let samples = mean(&ms.iter().map(|m| m.samples as f64).collect::<Vec<_>>());
             let flips: Vec<f64> = ms.iter().filter_map(|m| m.flip).collect();
@@ -563,10 +737,15 @@ fn cells(r: &SceneResult, config: usize, ladder: &[u32]) -> Vec<Cell> {
                 samples_per_second: samples / seconds.max(1e-9),
                 rel_mse: mu,
                 rel_mse_sd: sd,
-                rel_mse_trimmed: mean(&ms.iter().map(|m| m.errors.rel_mse_trimmed).collect::<Vec<_>>()),
+                rel_mse_trimmed: mean(
+                    &ms.iter()
+                        .map(|m| m.errors.rel_mse_trimmed)
+                        .collect::<Vec<_>>(),
+                ),
                 mape: mean(&ms.iter().map(|m| m.errors.mape).collect::<Vec<_>>()),
                 rmse: mean(&ms.iter().map(|m| m.errors.rmse).collect::<Vec<_>>()),
                 flip: (flips.len() == ms.len()).then(|| mean(&flips)),
+                mean_ratio: mean(&ms.iter().map(|m| m.mean_ratio).collect::<Vec<_>>()),
                 estimator_bytes: ms[0].estimator_bytes,
             })
         })
@@ -617,7 +796,7 @@ impl Speedup {
 /// The time `cells` (in ladder order) need to reach `error`, against the
 /// baseline's time `t_base` for it.
 fn speedup_at_error(cells: &[Cell], error: f64, t_base: f64) -> Speedup {
-    if cells.is_empty() || !(error > 0.0) {
+    if cells.is_empty() || error.is_nan() || error <= 0.0 {
         return Speedup::NotReached;
     }
     let first = &cells[0];
@@ -629,7 +808,11 @@ fn speedup_at_error(cells: &[Cell], error: f64, t_base: f64) -> Speedup {
     for w in pts.windows(2) {
         let ((e0, t0), (e1, t1)) = (w[0], w[1]);
         if e0 >= error && e1 <= error && e0 > 0.0 && e1 > 0.0 && t0 > 0.0 && t1 > 0.0 {
-            let t = if (e0 - e1).abs() < 1e-300 { t0 } else { (t0.ln() + (error.ln() - e0.ln()) / (e1.ln() - e0.ln()) * (t1.ln() - t0.ln())).exp() };
+            let t = if (e0 - e1).abs() < 1e-300 {
+                t0
+            } else {
+                (t0.ln() + (error.ln() - e0.ln()) / (e1.ln() - e0.ln()) * (t1.ln() - t0.ln())).exp()
+            };
             return Speedup::Exact(t_base / t.max(1e-9));
         }
     }
@@ -637,7 +820,9 @@ fn speedup_at_error(cells: &[Cell], error: f64, t_base: f64) -> Speedup {
 }
 
 fn baseline_index(r: &SceneResult, m: u32) -> Option<usize> {
-    r.configs.iter().position(|c| c.kind == Kind::Pt && c.m == m)
+    r.configs
+        .iter()
+        .position(|c| c.kind == Kind::Pt && c.m == m)
 }
 
 // ---------------------------------------------------------------- reports
@@ -655,9 +840,16 @@ impl Machine {
     fn probe() -> Self {
         let cpu = std::fs::read_to_string("/proc/cpuinfo")
             .ok()
-            .and_then(|s| s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split_once(':')).map(|(_, v)| v.trim().to_string()))
+            .and_then(|s| {
+                s.lines()
+                    .find(|l| l.starts_with("model name"))
+                    .and_then(|l| l.split_once(':'))
+                    .map(|(_, v)| v.trim().to_string())
+            })
             .unwrap_or_else(|| "unknown CPU".into());
-        let nproc = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        let nproc = std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1);
         let git = |args: &[&str]| {
             std::process::Command::new("git")
                 .args(args)
@@ -668,19 +860,36 @@ impl Machine {
         };
         let commit = match git(&["rev-parse", "--short=12", "HEAD"]) {
             Some(c) => {
-                let dirty = git(&["status", "--porcelain", "--untracked-files=no"]).is_some_and(|s| !s.is_empty());
-                if dirty { format!("{c} (with uncommitted changes)") } else { c }
+                let dirty = git(&["status", "--porcelain", "--untracked-files=no"])
+                    .is_some_and(|s| !s.is_empty());
+                if dirty {
+                    format!("{c} (with uncommitted changes)")
+                } else {
+                    c
+                }
             }
             None => "unknown (not a git checkout)".into(),
         };
-        let os = std::fs::read_to_string("/proc/sys/kernel/osrelease").map(|s| format!("Linux {}", s.trim())).unwrap_or_else(|_| std::env::consts::OS.into());
-        Machine { cpu, nproc, threads: rayon::current_num_threads(), date: utc_now(), commit, os }
+        let os = std::fs::read_to_string("/proc/sys/kernel/osrelease")
+            .map(|s| format!("Linux {}", s.trim()))
+            .unwrap_or_else(|_| std::env::consts::OS.into());
+        Machine {
+            cpu,
+            nproc,
+            threads: rayon::current_num_threads(),
+            date: utc_now(),
+            commit,
+            os,
+        }
     }
 }
 
 /// The current UTC date and time, without a date library.
 fn utc_now() -> String {
-    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs() as i64).unwrap_or(0);
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs() as i64)
+        .unwrap_or(0);
     let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
     // Howard Hinnant's civil_from_days.
     let z = days + 719_468;
@@ -692,7 +901,11 @@ fn utc_now() -> String {
     let d = doy - (153 * mp + 2) / 5 + 1;
     let m = if mp < 10 { mp + 3 } else { mp - 9 };
     let y = yoe + era * 400 + i64::from(m <= 2);
-    format!("{y:04}-{m:02}-{d:02} {:02}:{:02} UTC", rem / 3600, rem % 3600 / 60)
+    format!(
+        "{y:04}-{m:02}-{d:02} {:02}:{:02} UTC",
+        rem / 3600,
+        rem % 3600 / 60
+    )
 }
 
 fn peak_rss_mib() -> Option<f64> {
@@ -703,19 +916,49 @@ fn peak_rss_mib() -> Option<f64> {
 }
 
 fn sci(x: f64) -> String {
-    if x == 0.0 { "0".into() } else { format!("{x:.3e}") }
+    if x == 0.0 {
+        "0".into()
+    } else {
+        format!("{x:.3e}")
+    }
 }
 
 fn mib(b: usize) -> String {
-    if b == 0 { "0".into() } else { format!("{:.2} MiB", b as f64 / (1024.0 * 1024.0)) }
+    if b == 0 {
+        "0".into()
+    } else {
+        format!("{:.2} MiB", b as f64 / (1024.0 * 1024.0))
+    }
 }
 
-fn report_markdown(a: &BenchArgs, plan: &Plan, m: &Machine, results: &[SceneResult], total: f64) -> String {
+fn report_markdown(
+    a: &BenchArgs,
+    plan: &Plan,
+    m: &Machine,
+    results: &[SceneResult],
+    total: f64,
+) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "# nppp bench: time against error\n");
-    let _ = writeln!(s, "- mode: **{}** (`nppp bench{}`), finished {}, total {:.0} s", plan.mode, if a.quick { " --quick" } else { "" }, m.date, total);
-    let _ = writeln!(s, "- machine: {}, {} logical CPUs, {} render threads, {}", m.cpu, m.nproc, m.threads, m.os);
-    let _ = writeln!(s, "- commit: {}, nppp {}", m.commit, env!("CARGO_PKG_VERSION"));
+    let _ = writeln!(
+        s,
+        "- mode: **{}** (`nppp bench{}`), finished {}, total {:.0} s",
+        plan.mode,
+        if a.quick { " --quick" } else { "" },
+        m.date,
+        total
+    );
+    let _ = writeln!(
+        s,
+        "- machine: {}, {} logical CPUs, {} render threads, {}",
+        m.cpu, m.nproc, m.threads, m.os
+    );
+    let _ = writeln!(
+        s,
+        "- commit: {}, nppp {}",
+        m.commit,
+        env!("CARGO_PKG_VERSION")
+    );
     let _ = writeln!(
         s,
         "- ladder: {:?} spp, {} seed(s) (1..={}), resolution x{} of each scene's camera, M = {}",
@@ -742,15 +985,29 @@ fn report_markdown(a: &BenchArgs, plan: &Plan, m: &Machine, results: &[SceneResu
     );
 
     // Summary across scenes.
-    let _ = writeln!(s, "## Summary: speed-up of NPPP at equal error, against PT M={}\n", a.max_bounces);
+    let _ = writeln!(
+        s,
+        "## Summary: speed-up of NPPP at equal error, against PT M={}\n",
+        a.max_bounces
+    );
     let _ = writeln!(
         s,
         "Per scene and P: the speed-up at PT's error at each ladder point (lowest spp first). Above 1 NPPP is faster at equal error.\n"
     );
-    let _ = writeln!(s, "| scene | config | {} |", plan.ladder.iter().map(|spp| format!("at PT's error with {spp} spp")).collect::<Vec<_>>().join(" | "));
+    let _ = writeln!(
+        s,
+        "| scene | config | {} |",
+        plan.ladder
+            .iter()
+            .map(|spp| format!("at PT's error with {spp} spp"))
+            .collect::<Vec<_>>()
+            .join(" | ")
+    );
     let _ = writeln!(s, "|---|---|{}", "---|".repeat(plan.ladder.len()));
     for r in results {
-        let Some(bi) = baseline_index(r, a.max_bounces) else { continue };
+        let Some(bi) = baseline_index(r, a.max_bounces) else {
+            continue;
+        };
         let base = cells(r, bi, &plan.ladder);
         let mut any = false;
         for (ci, c) in r.configs.iter().enumerate() {
@@ -759,12 +1016,21 @@ fn report_markdown(a: &BenchArgs, plan: &Plan, m: &Machine, results: &[SceneResu
             }
             any = true;
             let cc = cells(r, ci, &plan.ladder);
-            let cols: Vec<String> = base.iter().map(|b| speedup_at_error(&cc, b.rel_mse, b.seconds).show()).collect();
+            let cols: Vec<String> = base
+                .iter()
+                .map(|b| speedup_at_error(&cc, b.rel_mse, b.seconds).show())
+                .collect();
             let _ = writeln!(s, "| {} | {} | {} |", r.name, c.label(), cols.join(" | "));
         }
         if !any {
             for (label, why) in &r.skipped {
-                let _ = writeln!(s, "| {} | {} | {} |", r.name, label, vec![why.as_str(); plan.ladder.len()].join(" | "));
+                let _ = writeln!(
+                    s,
+                    "| {} | {} | {} |",
+                    r.name,
+                    label,
+                    vec![why.as_str(); plan.ladder.len()].join(" | ")
+                );
             }
         }
     }
@@ -781,7 +1047,15 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
     let est = if r.estimator_files.is_empty() {
         "no estimators".to_string()
     } else {
-        format!("{} with an estimator ({})", r.estimator_instances, r.estimator_files.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "))
+        format!(
+            "{} with an estimator ({})",
+            r.estimator_instances,
+            r.estimator_files
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )
     };
     let _ = writeln!(
         s,
@@ -800,7 +1074,11 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
          adds about **{}** to every relMSE below (the floor no configuration can go under).\n",
         r.reference.max_bounces,
         r.reference.spp,
-        if r.reference_cached { "cached, settings and scene hash match" } else { "rendered in this run" },
+        if r.reference_cached {
+            "cached, settings and scene hash match"
+        } else {
+            "rendered in this run"
+        },
         r.reference.seconds,
         r.name,
         sci(r.reference.noise_floor_rel_mse)
@@ -809,13 +1087,17 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
 
     // Every measurement.
     let seeds = plan.seeds > 1;
-    let _ = writeln!(s, "### All measurements (mean over {} seed(s))\n", plan.seeds);
     let _ = writeln!(
         s,
-        "| config | spp | time (s) | samples/s | relMSE{} | relMSE trimmed | MAPE | RMSE | FLIP | estimator memory |",
+        "### All measurements (mean over {} seed(s))\n",
+        plan.seeds
+    );
+    let _ = writeln!(
+        s,
+        "| config | spp | time (s) | samples/s | relMSE{} | relMSE trimmed | MAPE | RMSE | FLIP | mean / reference | estimator memory |",
         if seeds { " (± sd over seeds)" } else { "" }
     );
-    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let _ = writeln!(s, "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for (ci, c) in r.configs.iter().enumerate() {
         for cell in cells(r, ci, &plan.ladder) {
             let rel = match cell.rel_mse_sd {
@@ -824,7 +1106,7 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
             };
             let _ = writeln!(
                 s,
-                "| {} | {} | {:.3} | {:.3} M | {} | {} | {:.4} | {} | {} | {} |",
+                "| {} | {} | {:.3} | {:.3} M | {} | {} | {:.4} | {} | {} | {:.3} | {} |",
                 c.label(),
                 cell.spp,
                 cell.seconds,
@@ -833,30 +1115,55 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
                 sci(cell.rel_mse_trimmed),
                 cell.mape,
                 sci(cell.rmse),
-                cell.flip.map(|f| format!("{f:.4}")).unwrap_or_else(|| "n/a".into()),
+                cell.flip
+                    .map(|f| format!("{f:.4}"))
+                    .unwrap_or_else(|| "n/a".into()),
+                cell.mean_ratio,
                 mib(cell.estimator_bytes)
             );
         }
     }
     for (label, why) in &r.skipped {
-        let _ = writeln!(s, "| {label} | | {why} | | | | | | | |");
+        let _ = writeln!(s, "| {label} | | {why} | | | | | | | | |");
     }
     let _ = writeln!(s);
 
-    let Some(bi) = baseline_index(r, a.max_bounces) else { return };
+    let Some(bi) = baseline_index(r, a.max_bounces) else {
+        return;
+    };
     let base = cells(r, bi, &plan.ladder);
-    let others: Vec<(usize, &Config)> = r.configs.iter().enumerate().filter(|(i, _)| *i != bi).collect();
+    let others: Vec<(usize, &Config)> = r
+        .configs
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != bi)
+        .collect();
 
     // Equal spp.
-    let _ = writeln!(s, "### Equal spp: time and relMSE as a multiple of PT M={}'s\n", a.max_bounces);
-    let _ = writeln!(s, "| config | {} |", base.iter().map(|b| format!("{} spp", b.spp)).collect::<Vec<_>>().join(" | "));
+    let _ = writeln!(
+        s,
+        "### Equal spp: time and relMSE as a multiple of PT M={}'s\n",
+        a.max_bounces
+    );
+    let _ = writeln!(
+        s,
+        "| config | {} |",
+        base.iter()
+            .map(|b| format!("{} spp", b.spp))
+            .collect::<Vec<_>>()
+            .join(" | ")
+    );
     let _ = writeln!(s, "|---|{}", "---|".repeat(base.len()));
     for (ci, c) in &others {
         let cc = cells(r, *ci, &plan.ladder);
         let cols: Vec<String> = base
             .iter()
             .map(|b| match cc.iter().find(|x| x.spp == b.spp) {
-                Some(x) => format!("time x{:.2}, relMSE x{:.2}", x.seconds / b.seconds.max(1e-9), x.rel_mse / b.rel_mse.max(1e-300)),
+                Some(x) => format!(
+                    "time x{:.2}, relMSE x{:.2}",
+                    x.seconds / b.seconds.max(1e-9),
+                    x.rel_mse / b.rel_mse.max(1e-300)
+                ),
                 None => "-".into(),
             })
             .collect();
@@ -870,10 +1177,20 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
         "### Equal time: relMSE as a multiple of PT M={}'s, at PT's render times (interpolated; `-` outside the configuration's measured times)\n",
         a.max_bounces
     );
-    let _ = writeln!(s, "| config | {} |", base.iter().map(|b| format!("{:.3} s (PT {} spp)", b.seconds, b.spp)).collect::<Vec<_>>().join(" | "));
+    let _ = writeln!(
+        s,
+        "| config | {} |",
+        base.iter()
+            .map(|b| format!("{:.3} s (PT {} spp)", b.seconds, b.spp))
+            .collect::<Vec<_>>()
+            .join(" | ")
+    );
     let _ = writeln!(s, "|---|{}", "---|".repeat(base.len()));
     for (ci, c) in &others {
-        let mut pts: Vec<(f64, f64)> = cells(r, *ci, &plan.ladder).iter().map(|x| (x.seconds, x.rel_mse)).collect();
+        let mut pts: Vec<(f64, f64)> = cells(r, *ci, &plan.ladder)
+            .iter()
+            .map(|x| (x.seconds, x.rel_mse))
+            .collect();
         pts.sort_by(|p, q| p.0.total_cmp(&q.0));
         let cols: Vec<String> = base
             .iter()
@@ -887,18 +1204,37 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
     let _ = writeln!(s);
 
     // Equal error.
-    let _ = writeln!(s, "### Equal error: speed-up against PT M={} (PT's time / the configuration's time for PT's relMSE)\n", a.max_bounces);
-    let _ = writeln!(s, "| config | {} |", base.iter().map(|b| format!("relMSE {} (PT {} spp)", sci(b.rel_mse), b.spp)).collect::<Vec<_>>().join(" | "));
+    let _ = writeln!(
+        s,
+        "### Equal error: speed-up against PT M={} (PT's time / the configuration's time for PT's relMSE)\n",
+        a.max_bounces
+    );
+    let _ = writeln!(
+        s,
+        "| config | {} |",
+        base.iter()
+            .map(|b| format!("relMSE {} (PT {} spp)", sci(b.rel_mse), b.spp))
+            .collect::<Vec<_>>()
+            .join(" | ")
+    );
     let _ = writeln!(s, "|---|{}", "---|".repeat(base.len()));
     for (ci, c) in &others {
         let cc = cells(r, *ci, &plan.ladder);
-        let cols: Vec<String> = base.iter().map(|b| speedup_at_error(&cc, b.rel_mse, b.seconds).show()).collect();
+        let cols: Vec<String> = base
+            .iter()
+            .map(|b| speedup_at_error(&cc, b.rel_mse, b.seconds).show())
+            .collect();
         let _ = writeln!(s, "| {} | {} |", c.label(), cols.join(" | "));
     }
     let _ = writeln!(s);
 
     // Speed-up as a function of P.
-    let nppp: Vec<(usize, &Config)> = r.configs.iter().enumerate().filter(|(_, c)| c.kind == Kind::Nppp).collect();
+    let nppp: Vec<(usize, &Config)> = r
+        .configs
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| c.kind == Kind::Nppp)
+        .collect();
     if nppp.is_empty() {
         for (label, why) in &r.skipped {
             let _ = writeln!(s, "{label}: {why}.\n");
@@ -906,7 +1242,10 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
         return;
     }
     let top = base.last();
-    let _ = writeln!(s, "### NPPP as a function of P (at the top of the ladder unless said otherwise)\n");
+    let _ = writeln!(
+        s,
+        "### NPPP as a function of P (at the top of the ladder unless said otherwise)\n"
+    );
     let _ = writeln!(
         s,
         "| P | samples/s vs PT | relMSE vs PT at equal spp | trimmed relMSE vs PT | speed-up at PT's top-spp error | estimator entries per sample | mask skips per sample |"
@@ -914,8 +1253,14 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
     let _ = writeln!(s, "|---:|---:|---:|---:|---:|---:|---:|");
     for (ci, c) in &nppp {
         let cc = cells(r, *ci, &plan.ladder);
-        let (Some(b), Some(x)) = (top, cc.last()) else { continue };
-        let ms: Vec<&Measurement> = r.measurements.iter().filter(|m| m.config == *ci && m.spp == x.spp).collect();
+        let (Some(b), Some(x)) = (top, cc.last()) else {
+            continue;
+        };
+        let ms: Vec<&Measurement> = r
+            .measurements
+            .iter()
+            .filter(|m| m.config == *ci && m.spp == x.spp)
+            .collect();
         let samples: f64 = ms.iter().map(|m| m.samples as f64).sum::<f64>().max(1.0);
         let entries: f64 = ms.iter().map(|m| m.stats.entries as f64).sum();
         let skips: f64 = ms.iter().map(|m| m.stats.mask_skips as f64).sum();
@@ -948,11 +1293,15 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
             }
         }
         if !slower.is_empty() {
-            lines.push(format!("- {}: slower than PT at equal error at PT's error for {}.", c.label(), slower.join(", ")));
+            lines.push(format!(
+                "- {}: slower than PT at equal error at PT's error for {}.",
+                c.label(),
+                slower.join(", ")
+            ));
         }
         if !unreached.is_empty() {
             lines.push(format!(
-                "- {}: never reaches PT's error for {} on this ladder (its error stops falling: the estimator's bias), so PT wins there at any budget measured.",
+                "- {}: does not get down to PT's error for {} at any spp measured (more samples may, unless its bias stops it first); PT wins there at every budget measured.",
                 c.label(),
                 unreached.join(", ")
             ));
@@ -979,14 +1328,14 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
 
 fn report_csv(results: &[SceneResult]) -> String {
     let mut s = String::from(
-        "scene,config,kind,max_bounces,min_bounces,spp,seed,width,height,seconds,samples,samples_per_second,rel_mse,rel_mse_trimmed,mape,rmse,flip,estimator_bytes,estimator_entries,mask_skips,ambiguous\n",
+        "scene,config,kind,max_bounces,min_bounces,spp,seed,width,height,seconds,samples,samples_per_second,rel_mse,rel_mse_trimmed,mape,rmse,flip,mean_ratio,estimator_bytes,estimator_entries,mask_skips,ambiguous\n",
     );
     for r in results {
         for m in &r.measurements {
             let c = &r.configs[m.config];
             let _ = writeln!(
                 s,
-                "{},{},{},{},{},{},{},{},{},{:.6},{},{:.1},{:.6e},{:.6e},{:.6e},{:.6e},{},{},{},{},{}",
+                "{},{},{},{},{},{},{},{},{},{:.6},{},{:.1},{:.6e},{:.6e},{:.6e},{:.6e},{},{:.6},{},{},{},{}",
                 r.name,
                 c.label(),
                 match c.kind {
@@ -995,7 +1344,11 @@ fn report_csv(results: &[SceneResult]) -> String {
                     Kind::Oracle => "oracle",
                 },
                 c.m,
-                if c.kind == Kind::Pt { String::new() } else { c.p.to_string() },
+                if c.kind == Kind::Pt {
+                    String::new()
+                } else {
+                    c.p.to_string()
+                },
                 m.spp,
                 m.seed,
                 r.width,
@@ -1008,6 +1361,7 @@ fn report_csv(results: &[SceneResult]) -> String {
                 m.errors.mape,
                 m.errors.rmse,
                 m.flip.map(|f| format!("{f:.6}")).unwrap_or_default(),
+                m.mean_ratio,
                 m.estimator_bytes,
                 m.stats.entries,
                 m.stats.mask_skips,
@@ -1035,8 +1389,19 @@ fn curves(r: &SceneResult) -> Vec<Curve> {
         v.dedup();
         v
     };
-    let mmax = r.configs.iter().filter(|c| c.kind == Kind::Pt).map(|c| c.m).max().unwrap_or(1);
-    let nppp_colors = [RGBColor(214, 39, 40), RGBColor(255, 127, 14), RGBColor(31, 119, 180), RGBColor(44, 160, 44)];
+    let mmax = r
+        .configs
+        .iter()
+        .filter(|c| c.kind == Kind::Pt)
+        .map(|c| c.m)
+        .max()
+        .unwrap_or(1);
+    let nppp_colors = [
+        RGBColor(214, 39, 40),
+        RGBColor(255, 127, 14),
+        RGBColor(31, 119, 180),
+        RGBColor(44, 160, 44),
+    ];
     r.configs
         .iter()
         .enumerate()
@@ -1051,16 +1416,28 @@ fn curves(r: &SceneResult) -> Vec<Curve> {
                 Kind::Nppp => (nppp_colors[(c.p as usize).min(3)], 2),
                 Kind::Oracle => (RGBColor(148, 103, 189), 1),
             };
-            let mut points: Vec<(f64, f64)> =
-                cells(r, ci, &ladder).iter().filter(|x| x.seconds > 0.0 && x.rel_mse > 0.0).map(|x| (x.seconds, x.rel_mse)).collect();
+            let mut points: Vec<(f64, f64)> = cells(r, ci, &ladder)
+                .iter()
+                .filter(|x| x.seconds > 0.0 && x.rel_mse > 0.0)
+                .map(|x| (x.seconds, x.rel_mse))
+                .collect();
             points.sort_by(|a, b| a.0.total_cmp(&b.0));
-            Curve { label: c.label(), color, width, points }
+            Curve {
+                label: c.label(),
+                color,
+                width,
+                points,
+            }
         })
         .filter(|c| !c.points.is_empty())
         .collect()
 }
 
-fn draw<DB: plotters::prelude::DrawingBackend>(root: plotters::prelude::DrawingArea<DB, plotters::coord::Shift>, title: &str, curves: &[Curve]) -> Result<()>
+fn draw<DB: plotters::prelude::DrawingBackend>(
+    root: plotters::prelude::DrawingArea<DB, plotters::coord::Shift>,
+    title: &str,
+    curves: &[Curve],
+) -> Result<()>
 where
     DB::ErrorType: 'static,
 {
@@ -1095,15 +1472,30 @@ where
         .draw()
         .map_err(|e| err(&e))?;
     for c in curves {
-        let style = ShapeStyle { color: c.color.to_rgba(), filled: true, stroke_width: c.width };
+        let style = ShapeStyle {
+            color: c.color.to_rgba(),
+            filled: true,
+            stroke_width: c.width,
+        };
         let color = c.color;
         let width = c.width;
         chart
             .draw_series(LineSeries::new(c.points.iter().copied(), style))
             .map_err(|e| err(&e))?
             .label(c.label.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], ShapeStyle { color: color.to_rgba(), filled: true, stroke_width: width.max(2) }));
-        chart.draw_series(c.points.iter().map(|&p| Circle::new(p, 3, style.filled()))).map_err(|e| err(&e))?;
+            .legend(move |(x, y)| {
+                PathElement::new(
+                    vec![(x, y), (x + 20, y)],
+                    ShapeStyle {
+                        color: color.to_rgba(),
+                        filled: true,
+                        stroke_width: width.max(2),
+                    },
+                )
+            });
+        chart
+            .draw_series(c.points.iter().map(|&p| Circle::new(p, 3, style.filled())))
+            .map_err(|e| err(&e))?;
     }
     chart
         .configure_series_labels()
@@ -1121,7 +1513,10 @@ where
 fn register_font() -> Result<(), String> {
     static DONE: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
     DONE.get_or_init(|| {
-        let mut candidates: Vec<PathBuf> = std::env::var_os("NPPP_FONT").map(PathBuf::from).into_iter().collect();
+        let mut candidates: Vec<PathBuf> = std::env::var_os("NPPP_FONT")
+            .map(PathBuf::from)
+            .into_iter()
+            .collect();
         for p in [
             "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
             "/usr/share/fonts/dejavu/DejaVuSans.ttf",
@@ -1136,7 +1531,13 @@ fn register_font() -> Result<(), String> {
         for p in candidates {
             if let Ok(bytes) = std::fs::read(&p) {
                 let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                if plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes).is_ok() {
+                if plotters::style::register_font(
+                    "sans-serif",
+                    plotters::style::FontStyle::Normal,
+                    bytes,
+                )
+                .is_ok()
+                {
                     return Ok(());
                 }
             }
@@ -1159,10 +1560,19 @@ fn plot_scene(r: &SceneResult, out: &Path) -> Result<Vec<String>> {
     let title = format!("{}: time vs relMSE ({}x{})", r.name, r.width, r.height);
     let mut done = Vec::new();
     let svg = out.join(format!("{}.svg", r.name));
-    draw(SVGBackend::new(&svg, (900, 640)).into_drawing_area(), &title, &cs).with_context(|| format!("writing {}", svg.display()))?;
+    draw(
+        SVGBackend::new(&svg, (900, 640)).into_drawing_area(),
+        &title,
+        &cs,
+    )
+    .with_context(|| format!("writing {}", svg.display()))?;
     done.push(svg.display().to_string());
     let png = out.join(format!("{}.png", r.name));
-    match draw(BitMapBackend::new(&png, (900, 640)).into_drawing_area(), &title, &cs) {
+    match draw(
+        BitMapBackend::new(&png, (900, 640)).into_drawing_area(),
+        &title,
+        &cs,
+    ) {
         Ok(()) => done.push(png.display().to_string()),
         Err(e) => done.push(format!("{} not written: {e:#}", png.display())),
     }
@@ -1184,6 +1594,7 @@ mod tests {
             mape: 0.0,
             rmse: 0.0,
             flip: None,
+            mean_ratio: 1.0,
             estimator_bytes: 0,
         }
     }
@@ -1204,8 +1615,13 @@ mod tests {
             Speedup::Exact(x) => assert!((x - 2.0).abs() < 1e-9, "{x}"),
             s => panic!("{s:?}"),
         }
-        assert!(matches!(speedup_at_error(&c, 10.0, 1.0), Speedup::AtLeast(x) if (x - 4.0).abs() < 1e-9));
-        assert!(matches!(speedup_at_error(&c, 0.01, 1.0), Speedup::NotReached));
+        assert!(
+            matches!(speedup_at_error(&c, 10.0, 1.0), Speedup::AtLeast(x) if (x - 4.0).abs() < 1e-9)
+        );
+        assert!(matches!(
+            speedup_at_error(&c, 0.01, 1.0),
+            Speedup::NotReached
+        ));
     }
 
     #[test]

@@ -59,15 +59,18 @@ pub struct TrainOptions {
     /// Burn backend.
     #[arg(long, value_enum, default_value_t = BackendKind::default())]
     pub backend: BackendKind,
-    /// Train until this many epochs are complete (one epoch = one pass over
-    /// the training hit rays). Default: the saved/default config's.
+    /// Length of the run in optimizer steps (default 24000: about 12 minutes
+    /// on 2 cores); the learning-rate schedule follows it.
+    #[arg(long, conflicts_with = "epochs")]
+    pub steps: Option<u64>,
+    /// Length of the run in epochs (one epoch = one pass over the training
+    /// hit rays), instead of --steps.
     #[arg(long)]
     pub epochs: Option<usize>,
-    /// Stop once this many optimizer steps are done in total, as if
-    /// interrupted: the learning-rate schedule still follows --epochs, and
-    /// a later --resume continues the same run.
+    /// Stop once this many steps are done in total, as if interrupted: the
+    /// schedule still follows the run's length, and --resume continues it.
     #[arg(long)]
-    pub steps: Option<u64>,
+    pub stop_after: Option<u64>,
     /// Wall-clock budget of this invocation in minutes (0 = none): training
     /// stops, evaluates and checkpoints when it is spent.
     #[arg(long, default_value_t = 60.0)]
@@ -87,7 +90,8 @@ pub struct TrainOptions {
     /// Adam learning rate.
     #[arg(long)]
     pub lr: Option<f64>,
-    /// Weight of the energy-distance term added to Chamfer (0 = Chamfer only).
+    /// Weight of the energy-distance term added to Chamfer (0 = Chamfer only;
+    /// default 1).
     #[arg(long)]
     pub energy_weight: Option<f32>,
     /// Seed of every random choice of the run.
@@ -128,6 +132,7 @@ impl TrainOptions {
             backend: BackendKind::default(),
             epochs: None,
             steps: None,
+            stop_after: None,
             minutes: 60.0,
             resume: false,
             batch: None,
@@ -176,8 +181,11 @@ pub struct TrainConfig {
     pub beta_2: f32,
     #[config(default = 1e-8)]
     pub epsilon: f32,
-    /// Weight of the energy distance next to Chamfer.
-    #[config(default = 0.0)]
+    /// Weight of the energy distance next to Chamfer. Chamfer matches
+    /// supports, not densities: on the knot, Chamfer alone left the held-out
+    /// mean throughput 1.5% too bright (per-ray RMS error 3.9%); with the
+    /// energy term at weight 1: +0.9% and 3.0%, for 18% more time per step.
+    #[config(default = 1.0)]
     pub energy_weight: f32,
     #[config(default = 1.0)]
     pub mask_weight: f32,
@@ -192,8 +200,13 @@ pub struct TrainConfig {
     /// 0 = one pass over the training hit rays.
     #[config(default = 0)]
     pub steps_per_epoch: usize,
-    #[config(default = 20)]
+    /// Length of the run in steps, unless `epochs` is set.
+    #[config(default = 24000)]
+    pub steps: u64,
+    /// Length of the run in epochs (0 = use `steps`).
+    #[config(default = 0)]
     pub epochs: usize,
+    /// Held-out hit rays whose exits are scored at each epoch's end.
     #[config(default = 512)]
     pub eval_rays: usize,
 }
@@ -423,9 +436,14 @@ fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
         }
         cfg
     };
-    // The budget and the learning rate may change between invocations.
+    // The length, the learning rate and the evaluation may change between
+    // invocations (a longer run stretches the decay phase accordingly).
     if let Some(v) = opts.epochs {
         cfg.epochs = v;
+    }
+    if let Some(v) = opts.steps {
+        cfg.steps = v;
+        cfg.epochs = 0;
     }
     if let Some(v) = opts.lr {
         cfg.lr = v;
@@ -731,8 +749,12 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
         n_hit.div_ceil(cfg.batch)
     };
     // The schedule's length, and where this invocation stops.
-    let total_steps = (cfg.epochs * spe) as u64;
-    let stop_at = opts.steps.map_or(total_steps, |s| s.min(total_steps));
+    let total_steps = if cfg.epochs > 0 {
+        (cfg.epochs * spe) as u64
+    } else {
+        cfg.steps
+    };
+    let stop_at = opts.stop_after.map_or(total_steps, |s| s.min(total_steps));
     let fp = fingerprint(&info, &data);
     fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
 

@@ -104,7 +104,7 @@ fn resume_continues_from_the_saved_step() {
     // Interrupted after 1 epoch, then resumed to 3.
     let b = tmp("resume-b");
     let mut o1 = opts(&b).tap_epochs(3);
-    o1.steps = Some(25);
+    o1.stop_after = Some(25);
     let r1 = train_with_data(&o1, info.clone(), data.clone()).unwrap();
     assert_eq!(r1.steps, 25);
     // A second fresh run into the same directory is refused.

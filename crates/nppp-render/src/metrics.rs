@@ -34,13 +34,24 @@ pub const TRIM_FRACTION: f64 = 0.001;
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum MetricsError {
     #[error("image is {width}x{height} but the reference is {ref_width}x{ref_height}")]
-    SizeMismatch { width: u32, height: u32, ref_width: u32, ref_height: u32 },
+    SizeMismatch {
+        width: u32,
+        height: u32,
+        ref_width: u32,
+        ref_height: u32,
+    },
     #[error("the images have no pixels")]
     Empty,
     #[error("the {which} has a non-finite value at pixel ({x}, {y})")]
     NonFinite { which: &'static str, x: u32, y: u32 },
     #[error("the {which} has {len} pixels, but its size {width}x{height} needs {expected}")]
-    BadBuffer { which: &'static str, len: usize, width: u32, height: u32, expected: usize },
+    BadBuffer {
+        which: &'static str,
+        len: usize,
+        width: u32,
+        height: u32,
+        expected: usize,
+    },
 }
 
 /// Every metric of one image against its reference.
@@ -64,16 +75,30 @@ fn check(img: &Image, reference: &Image) -> Result<(), MetricsError> {
     for (which, im) in [("image", img), ("reference", reference)] {
         let expected = im.width as usize * im.height as usize;
         if im.pixels.len() != expected {
-            return Err(MetricsError::BadBuffer { which, len: im.pixels.len(), width: im.width, height: im.height, expected });
+            return Err(MetricsError::BadBuffer {
+                which,
+                len: im.pixels.len(),
+                width: im.width,
+                height: im.height,
+                expected,
+            });
         }
     }
     if img.pixels.is_empty() {
         return Err(MetricsError::Empty);
     }
     for (which, im) in [("image", img), ("reference", reference)] {
-        if let Some(i) = im.pixels.iter().position(|p| p.iter().any(|c| !c.is_finite())) {
+        if let Some(i) = im
+            .pixels
+            .iter()
+            .position(|p| p.iter().any(|c| !c.is_finite()))
+        {
             let w = im.width.max(1) as usize;
-            return Err(MetricsError::NonFinite { which, x: (i % w) as u32, y: (i / w) as u32 });
+            return Err(MetricsError::NonFinite {
+                which,
+                x: (i % w) as u32,
+                y: (i / w) as u32,
+            });
         }
     }
     Ok(())
@@ -128,7 +153,11 @@ pub fn mape(img: &Image, reference: &Image) -> Result<f64, MetricsError> {
         .pixels
         .iter()
         .zip(&reference.pixels)
-        .map(|(x, r)| (0..3).map(|c| ((x[c] as f64) - (r[c] as f64)).abs() / ((r[c] as f64) + REL_EPS)).sum::<f64>())
+        .map(|(x, r)| {
+            (0..3)
+                .map(|c| ((x[c] as f64) - (r[c] as f64)).abs() / ((r[c] as f64) + REL_EPS))
+                .sum::<f64>()
+        })
         .sum();
     Ok(s / (3 * img.pixels.len()) as f64)
 }

@@ -4,7 +4,11 @@ use nppp_render::Image;
 use nppp_render::metrics::{self, MetricsError, REL_EPS};
 
 fn constant(w: u32, h: u32, v: [f32; 3]) -> Image {
-    Image { width: w, height: h, pixels: vec![v; (w * h) as usize] }
+    Image {
+        width: w,
+        height: h,
+        pixels: vec![v; (w * h) as usize],
+    }
 }
 
 /// A smooth, non-constant image.
@@ -70,7 +74,10 @@ fn trimmed_variant_drops_a_single_firefly() {
     let base = 0.1f64 * 0.1 / (0.25 + REL_EPS);
     let plain = metrics::rel_mse(&img, &reference).unwrap();
     let trimmed = metrics::rel_mse_trimmed(&img, &reference).unwrap();
-    assert!(plain > 100.0 * base, "the firefly dominates the plain relMSE: {plain}");
+    assert!(
+        plain > 100.0 * base,
+        "the firefly dominates the plain relMSE: {plain}"
+    );
     assert!(close(trimmed, base), "trimmed {trimmed} vs {base}");
     assert_eq!(metrics::trimmed_pixels(1000), 1);
     assert_eq!(metrics::trimmed_pixels(999), 0);
@@ -95,17 +102,39 @@ fn mismatched_sizes_and_non_finite_values_are_errors() {
     let b = constant(4, 5, [1.0; 3]);
     assert_eq!(
         metrics::compare(&a, &b),
-        Err(MetricsError::SizeMismatch { width: 4, height: 4, ref_width: 4, ref_height: 5 })
+        Err(MetricsError::SizeMismatch {
+            width: 4,
+            height: 4,
+            ref_width: 4,
+            ref_height: 5
+        })
     );
     let mut c = a.clone();
     c.pixels[6][1] = f32::NAN;
-    assert_eq!(metrics::rel_mse(&c, &a), Err(MetricsError::NonFinite { which: "image", x: 2, y: 1 }));
-    assert_eq!(metrics::rmse(&a, &c), Err(MetricsError::NonFinite { which: "reference", x: 2, y: 1 }));
+    assert_eq!(
+        metrics::rel_mse(&c, &a),
+        Err(MetricsError::NonFinite {
+            which: "image",
+            x: 2,
+            y: 1
+        })
+    );
+    assert_eq!(
+        metrics::rmse(&a, &c),
+        Err(MetricsError::NonFinite {
+            which: "reference",
+            x: 2,
+            y: 1
+        })
+    );
     let e = constant(0, 0, [0.0; 3]);
     assert_eq!(metrics::mape(&e, &e), Err(MetricsError::Empty));
     let mut short = a.clone();
     short.pixels.pop();
-    assert!(matches!(metrics::rel_mse(&short, &a), Err(MetricsError::BadBuffer { .. })));
+    assert!(matches!(
+        metrics::rel_mse(&short, &a),
+        Err(MetricsError::BadBuffer { .. })
+    ));
     // The message names both sizes.
     let msg = metrics::compare(&a, &b).unwrap_err().to_string();
     assert!(msg.contains("4x4") && msg.contains("4x5"), "{msg}");
