@@ -38,7 +38,9 @@ pub struct ModelConfig {
     pub decoder_width: usize,
     #[config(default = 3)]
     pub decoder_layers: usize,
-    #[config(default = 128)]
+    /// The mask boundary of a thin, knotted shape is intricate; 256 wide
+    /// learned it clearly better than 128 for 10% more time per step.
+    #[config(default = 256)]
     pub mask_width: usize,
     #[config(default = 3)]
     pub mask_layers: usize,

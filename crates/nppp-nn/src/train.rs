@@ -71,8 +71,11 @@ pub struct TrainOptions {
     /// schedule still follows the run's length, and --resume continues it.
     #[arg(long)]
     pub stop_after: Option<u64>,
-    /// Wall-clock budget of this invocation in minutes (0 = none): training
-    /// stops, evaluates and checkpoints when it is spent.
+    /// Training-time budget of this invocation in minutes (0 = none). Once
+    /// 100 steps are timed, a run that would not fit is shortened so that it
+    /// still ends with its learning-rate decay (the run length then depends
+    /// on the machine's speed; use 0 for bit-reproducible runs). If the
+    /// budget is spent anyway, training evaluates, checkpoints and stops.
     #[arg(long, default_value_t = 60.0)]
     pub minutes: f64,
     /// Continue the checkpoint in --out.
@@ -161,7 +164,8 @@ pub struct TrainConfig {
     pub batch: usize,
     #[config(default = 64)]
     pub k: usize,
-    #[config(default = 512)]
+    /// Rays per step for the mask term (they are cheap: one logit each).
+    #[config(default = 1024)]
     pub mask_batch: usize,
     /// Adam (1e-3, 0.9, 0.999) as in the thesis; epsilon 1e-8 (Burn's
     /// default is 1e-5, which damps small gradients).
@@ -277,6 +281,11 @@ pub struct TrainState {
     pub epoch_count: u64,
     pub data: DataFingerprint,
     pub last_metrics: Option<HeldoutMetrics>,
+    /// The run's length after fitting it into a `--minutes` budget (None:
+    /// the configured length): the learning-rate schedule follows it, so a
+    /// time-limited run still ends with its decay phase.
+    #[serde(default)]
+    pub schedule_steps: Option<u64>,
 }
 
 /// Result of a training run.
@@ -296,6 +305,8 @@ pub struct TrainReport {
     /// Mean time of the step alone: batch assembly, forward, backward, Adam.
     pub step_seconds: f64,
     pub stopped_by_time: bool,
+    /// The run's scheduled length (shortened to fit `--minutes` if needed).
+    pub schedule_steps: u64,
     pub metrics: Option<HeldoutMetrics>,
 }
 
@@ -320,6 +331,12 @@ const STREAM_PERM: u64 = 0x9E41;
 const STREAM_BATCH: u64 = 0xBA7C;
 const STREAM_NOISE: u64 = 0x7015;
 const STREAM_MASK: u64 = 0x3A5C;
+
+/// Steps timed before a `--minutes` budget shortens the schedule.
+const CALIBRATION_STEPS: u64 = 100;
+/// Share of the measured pace the budget plans for: evaluations,
+/// checkpoints and a busy machine take the rest.
+const TIME_SAFETY: f64 = 0.85;
 
 /// A checkpoint is also written this often (seconds) within long epochs, so
 /// an interrupted run loses little.
@@ -754,7 +771,8 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
     } else {
         cfg.steps
     };
-    let stop_at = opts.stop_after.map_or(total_steps, |s| s.min(total_steps));
+    let mut total_steps = total_steps;
+    let mut stop_at = opts.stop_after.map_or(total_steps, |s| s.min(total_steps));
     let fp = fingerprint(&info, &data);
     fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
 
@@ -799,10 +817,15 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
             epoch_count: 0,
             data: fp,
             last_metrics: None,
+            schedule_steps: None,
         };
         (model, make_optimizer(&cfg), state)
     };
 
+    if let Some(s) = state.schedule_steps {
+        total_steps = total_steps.min(s);
+        stop_at = stop_at.min(total_steps);
+    }
     let start_step = state.step;
     let pb = if opts.quiet {
         ProgressBar::hidden()
@@ -848,6 +871,31 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
         }
         let ts = Instant::now();
         let batch = make_batch(&cfg, &data, &perm, state.step, spe);
+        // Fit the schedule into the time budget once the step time is known.
+        if opts.minutes > 0.0 && state.step == start_step + CALIBRATION_STEPS {
+            let per_step = t0.elapsed().as_secs_f64() / CALIBRATION_STEPS as f64;
+            let left = opts.minutes * 60.0 - t0.elapsed().as_secs_f64();
+            let fits = state.step + (TIME_SAFETY * left / per_step).max(0.0) as u64;
+            if fits < total_steps {
+                let line = format!(
+                    "--minutes {}: {total_steps} steps would not fit at {:.1} ms/step; the run \
+                     is shortened to {fits} steps (its learning-rate decay included)",
+                    opts.minutes,
+                    per_step * 1e3
+                );
+                if pb.is_hidden() {
+                    if !opts.quiet {
+                        eprintln!("{line}");
+                    }
+                } else {
+                    pb.println(line);
+                }
+                total_steps = fits;
+                stop_at = stop_at.min(fits);
+                state.schedule_steps = Some(fits);
+                pb.set_length(stop_at);
+            }
+        }
         let lr = cfg.lr_at(state.step, total_steps);
         let stepped = train_step(model, &mut optim, &cfg, lr, batch, &ad);
         step_time += ts.elapsed().as_secs_f64();
@@ -969,6 +1017,7 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
         seconds_per_step: t0.elapsed().as_secs_f64() / run.max(1) as f64,
         step_seconds: step_time / run.max(1) as f64,
         stopped_by_time,
+        schedule_steps: total_steps,
         metrics: state.last_metrics,
     })
 }

@@ -27,7 +27,7 @@ fn trained(dir: &PathBuf) -> PathBuf {
     header.material_hash = 42;
     header.max_internal_bounces = 16;
     let mut w = DatasetWriter::create(&data, header).unwrap();
-    for r in SyntheticObject::Mirror { radius: 0.6 }.rays(400, 8, 3) {
+    for r in (SyntheticObject::Mirror { radius: 0.6 }).rays(400, 8, 3) {
         w.write(&r).unwrap();
     }
     w.finish().unwrap();

@@ -14,8 +14,21 @@ use std::path::{Path, PathBuf};
 
 const SPHERE: &str = r#"{"icosphere": {"center": [0, 0, 0], "radius": 1, "subdivisions": 3}}"#;
 
-fn render_scene(scene: &nppp_scene::Scene, spp: u32, max_bounces: u32, seed: u64) -> (Image, RenderStats) {
-    nppp_render::render(&RenderScene::new(scene), &RenderOptions { spp, max_bounces, seed, progress: false })
+fn render_scene(
+    scene: &nppp_scene::Scene,
+    spp: u32,
+    max_bounces: u32,
+    seed: u64,
+) -> (Image, RenderStats) {
+    nppp_render::render(
+        &RenderScene::new(scene),
+        &RenderOptions {
+            spp,
+            max_bounces,
+            seed,
+            progress: false,
+        },
+    )
 }
 
 fn render_json(json: &str, spp: u32, max_bounces: u32, seed: u64) -> (Image, RenderStats) {
@@ -23,13 +36,21 @@ fn render_json(json: &str, spp: u32, max_bounces: u32, seed: u64) -> (Image, Ren
 }
 
 fn assert_finite(img: &Image, what: &str) {
-    let bad = img.pixels.iter().filter(|p| !p.iter().all(|c| c.is_finite() && *c >= 0.0)).count();
+    let bad = img
+        .pixels
+        .iter()
+        .filter(|p| !p.iter().all(|c| c.is_finite() && *c >= 0.0))
+        .count();
     assert_eq!(bad, 0, "{what}: {bad} pixels are negative, NaN or infinite");
 }
 
 /// Largest |pixel - target| over all pixels and channels.
 fn max_dev(img: &Image, target: f32) -> f32 {
-    img.pixels.iter().flat_map(|p| p.iter()).map(|v| (v - target).abs()).fold(0.0, f32::max)
+    img.pixels
+        .iter()
+        .flat_map(|p| p.iter())
+        .map(|v| (v - target).abs())
+        .fold(0.0, f32::max)
 }
 
 fn luminance_mean(img: &Image) -> f64 {
@@ -95,7 +116,11 @@ fn scale_scene(scene: &Value, s: f64) -> Value {
     }
     for inst in v["instances"].as_array_mut().unwrap() {
         let by_instance = intrinsic.iter().any(|n| inst["mesh"] == *n);
-        let t = inst.as_object_mut().unwrap().entry("transform").or_insert(json!({}));
+        let t = inst
+            .as_object_mut()
+            .unwrap()
+            .entry("transform")
+            .or_insert(json!({}));
         if let Some(tr) = t.get_mut("translate") {
             s3(tr);
         }
@@ -137,14 +162,26 @@ fn cornell_box_renders_alike_at_1e_minus4_1_and_1e4() {
     let b_ref = block_means(&reference, 8);
     // The noise floor: the same scene with another seed.
     let other = render(1.0, 8);
-    let noise: f64 = block_means(&other, 8).iter().zip(&b_ref).map(|(a, b)| (a - b).abs() / b.max(1e-3)).fold(0.0, f64::max);
+    let noise: f64 = block_means(&other, 8)
+        .iter()
+        .zip(&b_ref)
+        .map(|(a, b)| (a - b).abs() / b.max(1e-3))
+        .fold(0.0, f64::max);
     for s in [1e-4, 1e4] {
         let img = render(s, 7);
         let m = luminance_mean(&img);
-        assert!((m / m_ref - 1.0).abs() < 0.005, "scale {s}: mean {m} vs {m_ref} at scale 1");
+        assert!(
+            (m / m_ref - 1.0).abs() < 0.005,
+            "scale {s}: mean {m} vs {m_ref} at scale 1"
+        );
         for (i, (a, b)) in block_means(&img, 8).iter().zip(&b_ref).enumerate() {
             let rel = (a - b).abs() / b.max(1e-3);
-            assert!(rel < 0.02, "scale {s}: block {i} differs by {:.2}% ({a} vs {b}; seed-to-seed noise {:.2}%)", rel * 100.0, noise * 100.0);
+            assert!(
+                rel < 0.02,
+                "scale {s}: block {i} differs by {:.2}% ({a} vs {b}; seed-to-seed noise {:.2}%)",
+                rel * 100.0,
+                noise * 100.0
+            );
         }
     }
 }
@@ -154,8 +191,16 @@ fn cornell_box_renders_alike_at_1e_minus4_1_and_1e4() {
 #[test]
 fn furnace_is_exact_at_every_scale() {
     for h in [3e-4f32, 3.0, 3e4] {
-        let mesh = format!(r#"{{"icosphere": {{"center": [0, 0, 0], "radius": {}, "subdivisions": 3}}}}"#, h / 3.0);
-        let json = furnace_scene(r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#, 1.0, h, &mesh);
+        let mesh = format!(
+            r#"{{"icosphere": {{"center": [0, 0, 0], "radius": {}, "subdivisions": 3}}}}"#,
+            h / 3.0
+        );
+        let json = furnace_scene(
+            r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#,
+            1.0,
+            h,
+            &mesh,
+        );
         let (img, st) = render_json(&json, 64, 4, 3);
         assert_finite(&img, &format!("h {h}"));
         assert_eq!(st.dropped_samples, 0);
@@ -166,7 +211,10 @@ fn furnace_is_exact_at_every_scale() {
                 centre += img.get(x, y)[0] / 16.0;
             }
         }
-        assert!((centre - 0.5).abs() < 0.02, "h {h}: sphere centre {centre}, want 0.5");
+        assert!(
+            (centre - 0.5).abs() < 0.02,
+            "h {h}: sphere centre {centre}, want 0.5"
+        );
         for (x, y) in [(0, 0), (23, 0), (0, 23), (23, 23)] {
             assert_eq!(img.get(x, y), [1.0; 3], "h {h}: wall pixel ({x}, {y})");
         }
@@ -192,7 +240,11 @@ fn radiance_1e6_scales_linearly() {
     for (a, b) in one.pixels.iter().zip(&big.pixels) {
         for c in 0..3 {
             let want = a[c] as f64 * 1e6;
-            assert!((b[c] as f64 - want).abs() <= 1e-4 * want + 1e-3, "{} vs {want}", b[c]);
+            assert!(
+                (b[c] as f64 - want).abs() <= 1e-4 * want + 1e-3,
+                "{} vs {want}",
+                b[c]
+            );
         }
     }
     assert!(luminance_mean(&one) > 0.01);
@@ -207,7 +259,10 @@ fn radiance_near_f32_max_drops_and_counts_overflowing_samples() {
     scene["materials"]["lamp"]["radiance"] = json!([3e38, 3e38, 3e38]);
     let (img, st) = render_json(&scene.to_string(), 16, 5, 1);
     assert_finite(&img, "radiance 3e38");
-    assert!(st.dropped_samples > 0, "no sample overflowed: the test does not test anything");
+    assert!(
+        st.dropped_samples > 0,
+        "no sample overflowed: the test does not test anything"
+    );
     assert!(st.dropped_samples < st.samples);
     // The lamp itself, seen directly, is exactly its radiance: nothing overflowed there.
     let top = img.pixels.iter().map(|p| p[0]).fold(0.0, f32::max);
@@ -221,7 +276,12 @@ fn radiance_near_f32_max_drops_and_counts_overflowing_samples() {
 /// Albedo exactly 0: the sphere's pixels are exactly black, the walls exactly Le.
 #[test]
 fn albedo_zero_is_exactly_black() {
-    let json = furnace_scene(r#"{"type": "diffuse", "albedo": [0, 0, 0]}"#, 1.0, 3.0, SPHERE);
+    let json = furnace_scene(
+        r#"{"type": "diffuse", "albedo": [0, 0, 0]}"#,
+        1.0,
+        3.0,
+        SPHERE,
+    );
     let (img, st) = render_json(&json, 16, 8, 1);
     assert_eq!(st.dropped_samples, 0);
     // The sphere subtends ~8 pixels of radius around the image centre.
@@ -243,7 +303,12 @@ fn albedo_zero_is_exactly_black() {
 #[test]
 fn albedo_one_concave_object_vanishes() {
     let knot = r#"{"procedural": {"type": "torus_knot", "segments": 96, "sides": 12}}"#;
-    let json = furnace_scene(r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#, 1.0, 3.0, knot);
+    let json = furnace_scene(
+        r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#,
+        1.0,
+        3.0,
+        knot,
+    );
     let (img, st) = render_json(&json, 32, 200, 2);
     assert_finite(&img, "albedo 1");
     assert_eq!(st.dropped_samples, 0);
@@ -254,10 +319,19 @@ fn albedo_one_concave_object_vanishes() {
 #[test]
 fn roughness_zero_and_below_min_alpha_is_an_exact_mirror() {
     for r in ["0", "1e-5", "0.00009"] {
-        let json = furnace_scene(&format!(r#"{{"type": "conductor", "reflectance": [1, 1, 1], "roughness": {r}}}"#), 1.0, 3.0, SPHERE);
+        let json = furnace_scene(
+            &format!(r#"{{"type": "conductor", "reflectance": [1, 1, 1], "roughness": {r}}}"#),
+            1.0,
+            3.0,
+            SPHERE,
+        );
         let (img, st) = render_json(&json, 4, 8, 1);
         assert_eq!(st.dropped_samples, 0);
-        assert!(max_dev(&img, 1.0) < 1e-5, "roughness {r}: a pixel strays by {}", max_dev(&img, 1.0));
+        assert!(
+            max_dev(&img, 1.0) < 1e-5,
+            "roughness {r}: a pixel strays by {}",
+            max_dev(&img, 1.0)
+        );
     }
 }
 
@@ -265,14 +339,23 @@ fn roughness_zero_and_below_min_alpha_is_an_exact_mirror() {
 /// Finite, nothing dropped, and still (almost) lossless.
 #[test]
 fn roughness_just_above_mirror_threshold_is_finite_and_lossless() {
-    let json = furnace_scene(r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 0.00015}"#, 1.0, 3.0, SPHERE);
+    let json = furnace_scene(
+        r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 0.00015}"#,
+        1.0,
+        3.0,
+        SPHERE,
+    );
     let (img, st) = render_json(&json, 16, 8, 1);
     assert_finite(&img, "roughness 1.5e-4");
     assert_eq!(st.dropped_samples, 0);
     let m = luminance_mean(&img);
     assert!((m - 1.0).abs() < 2e-3, "mean {m}");
     // Single pixels carry the GGX tail's noise (NEE vs BSDF sampling), a few percent at 16 spp.
-    assert!(max_dev(&img, 1.0) < 0.08, "a pixel strays by {}", max_dev(&img, 1.0));
+    assert!(
+        max_dev(&img, 1.0) < 0.08,
+        "a pixel strays by {}",
+        max_dev(&img, 1.0)
+    );
 }
 
 /// Roughness exactly 1: finite, nothing dropped, and the single-scattering
@@ -280,13 +363,22 @@ fn roughness_just_above_mirror_threshold_is_finite_and_lossless() {
 /// 0.31 at normal incidence is left, more at grazing).
 #[test]
 fn roughness_one_is_finite_and_loses_energy_as_single_scattering_ggx() {
-    let json = furnace_scene(r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 1}"#, 1.0, 3.0, SPHERE);
+    let json = furnace_scene(
+        r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 1}"#,
+        1.0,
+        3.0,
+        SPHERE,
+    );
     let (img, st) = render_json(&json, 64, 8, 1);
     assert_finite(&img, "roughness 1");
     assert_eq!(st.dropped_samples, 0);
-    let c = (img.get(11, 11)[0] + img.get(12, 12)[0] + img.get(11, 12)[0] + img.get(12, 11)[0]) / 4.0;
+    let c =
+        (img.get(11, 11)[0] + img.get(12, 12)[0] + img.get(11, 12)[0] + img.get(12, 11)[0]) / 4.0;
     assert!(c > 0.2 && c < 0.45, "centre {c}");
-    assert!(img.pixels.iter().all(|p| p[0] <= 1.0 + 1e-5), "a pixel is brighter than the furnace");
+    assert!(
+        img.pixels.iter().all(|p| p[0] <= 1.0 + 1e-5),
+        "a pixel is brighter than the furnace"
+    );
 }
 
 /// ior 1.0001, 1 and 0.9999: the glass is (almost) not there. Every pixel,
@@ -294,11 +386,20 @@ fn roughness_one_is_finite_and_loses_energy_as_single_scattering_ggx() {
 #[test]
 fn ior_close_to_one_makes_glass_invisible() {
     for ior in ["1.0001", "1", "0.9999"] {
-        let json = furnace_scene(&format!(r#"{{"type": "dielectric", "ior": {ior}}}"#), 1.0, 3.0, SPHERE);
+        let json = furnace_scene(
+            &format!(r#"{{"type": "dielectric", "ior": {ior}}}"#),
+            1.0,
+            3.0,
+            SPHERE,
+        );
         let (img, st) = render_json(&json, 16, 16, 1);
         assert_finite(&img, ior);
         assert_eq!(st.dropped_samples, 0, "ior {ior}");
-        assert!(max_dev(&img, 1.0) < 5e-3, "ior {ior}: a pixel strays by {}", max_dev(&img, 1.0));
+        assert!(
+            max_dev(&img, 1.0) < 5e-3,
+            "ior {ior}: a pixel strays by {}",
+            max_dev(&img, 1.0)
+        );
     }
 }
 
@@ -308,8 +409,24 @@ fn ior_close_to_one_makes_glass_invisible() {
 
 /// An octahedron as OBJ text with unshared (duplicated) vertices per face.
 fn octahedron_obj(extra: &str) -> String {
-    let v = [[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]];
-    let faces = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]];
+    let v = [
+        [1.0, 0.0, 0.0],
+        [-1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, -1.0, 0.0],
+        [0.0, 0.0, 1.0],
+        [0.0, 0.0, -1.0],
+    ];
+    let faces = [
+        [0, 2, 4],
+        [2, 1, 4],
+        [1, 3, 4],
+        [3, 0, 4],
+        [2, 0, 5],
+        [1, 2, 5],
+        [3, 1, 5],
+        [0, 3, 5],
+    ];
     let mut s = String::new();
     for f in faces {
         for k in f {
@@ -360,13 +477,24 @@ f 3 3 3
     let material = r#"{"type": "diffuse", "albedo": [0.6, 0.6, 0.6]}"#;
     let clean = obj_furnace(&dir, "clean", &octahedron_obj(""), material);
     let dirty = obj_furnace(&dir, "dirty", &octahedron_obj(degenerate), material);
-    assert_eq!(dirty.meshes.last().unwrap().triangles.len(), clean.meshes.last().unwrap().triangles.len() + 7);
+    assert_eq!(
+        dirty.meshes.last().unwrap().triangles.len(),
+        clean.meshes.last().unwrap().triangles.len() + 7
+    );
     let (a, sa) = render_scene(&clean, 32, 6, 5);
     let (b, sb) = render_scene(&dirty, 32, 6, 5);
     assert_finite(&b, "degenerate triangles");
     assert_eq!((sa.dropped_samples, sb.dropped_samples), (0, 0));
-    let worst = a.pixels.iter().zip(&b.pixels).flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs())).fold(0.0, f32::max);
-    assert_eq!(worst, 0.0, "the degenerate triangles changed a pixel by {worst}");
+    let worst = a
+        .pixels
+        .iter()
+        .zip(&b.pixels)
+        .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs()))
+        .fold(0.0, f32::max);
+    assert_eq!(
+        worst, 0.0,
+        "the degenerate triangles changed a pixel by {worst}"
+    );
     // And the octahedron is really there: its centre pixel is darker than the walls.
     assert!(a.get(12, 12)[0] < 0.9);
     let _ = std::fs::remove_dir_all(&dir);
@@ -381,7 +509,12 @@ f 3 3 3
 #[test]
 fn grazing_rays_and_cameras_on_a_surface_stay_exact() {
     let sheet = r#"{"quad": [[-2.8, 0, -2.8], [-2.8, 0, 2.8], [2.8, 0, 2.8], [2.8, 0, -2.8]]}"#;
-    let json = furnace_scene(r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#, 1.0, 3.0, sheet);
+    let json = furnace_scene(
+        r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#,
+        1.0,
+        3.0,
+        sheet,
+    );
     let mut v: Value = serde_json::from_str(&json).unwrap();
     let last = v["instances"].as_array().unwrap().len() - 1;
     v["instances"][last]["transform"] = json!({"rotate": {"axis": [1, 0.3, 0.2], "deg": 17}});
@@ -411,7 +544,10 @@ fn grazing_rays_and_cameras_on_a_surface_stay_exact() {
         // or occlusion shows as a row far from 1.
         for y in 0..16 {
             let row: f32 = (0..16).map(|x| img.get(x, y)[0]).sum::<f32>() / 16.0;
-            assert!((row - 1.0).abs() < 0.06, "camera at {pos}: row {y} mean {row}");
+            assert!(
+                (row - 1.0).abs() < 0.06,
+                "camera at {pos}: row {y} mean {row}"
+            );
         }
     }
 }
@@ -422,7 +558,12 @@ fn grazing_rays_and_cameras_on_a_surface_stay_exact() {
 #[test]
 fn nearly_coincident_surfaces_stay_exact() {
     let slab = r#"{"box": {"min": [-1, -0.00005, -1], "max": [1, 0.00005, 1]}}"#;
-    let json = furnace_scene(r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#, 1.0, 3.0, slab);
+    let json = furnace_scene(
+        r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#,
+        1.0,
+        3.0,
+        slab,
+    );
     let mut v: Value = serde_json::from_str(&json).unwrap();
     v["camera"]["position"] = json!([0, 1.5, -1.5]);
     let (img, st) = render_json(&v.to_string(), 64, 8, 4);
@@ -441,7 +582,13 @@ fn nearly_coincident_surfaces_stay_exact() {
 /// accumulator would be off in the 4th digit by then.
 #[test]
 fn high_spp_constant_emitter_is_exact() {
-    let mut v: Value = serde_json::from_str(&furnace_scene(r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#, 0.1, 3.0, SPHERE)).unwrap();
+    let mut v: Value = serde_json::from_str(&furnace_scene(
+        r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#,
+        0.1,
+        3.0,
+        SPHERE,
+    ))
+    .unwrap();
     // Look at a wall away from the sphere.
     v["camera"]["look_at"] = json!([0, 0, -10]);
     v["camera"]["width"] = json!(2);
@@ -456,7 +603,11 @@ fn high_spp_constant_emitter_is_exact() {
     for _ in 0..1 << 16 {
         s += 0.1;
     }
-    assert_ne!(s / (1 << 16) as f32, 0.1, "the f32 control no longer drifts: pick another value");
+    assert_ne!(
+        s / (1 << 16) as f32,
+        0.1,
+        "the f32 control no longer drifts: pick another value"
+    );
 }
 
 /// The accumulator itself over 10^8 samples: no drift, and non-finite
@@ -465,7 +616,11 @@ fn high_spp_constant_emitter_is_exact() {
 fn pixel_sum_does_not_drift_and_drops_non_finite() {
     let mut p = PixelSum::default();
     for i in 0..100_000_000u32 {
-        p.add(glam::Vec3::new(0.1, 1e-7, if i % 2 == 0 { 3.0 } else { 5.0 }));
+        p.add(glam::Vec3::new(
+            0.1,
+            1e-7,
+            if i % 2 == 0 { 3.0 } else { 5.0 },
+        ));
     }
     assert_eq!(p.mean(), [0.1, 1e-7, 4.0]);
     p.add(glam::Vec3::new(f32::NAN, 0.0, 0.0));
@@ -484,7 +639,13 @@ fn pixel_sum_does_not_drift_and_drops_non_finite() {
 /// furnace at 256 and 4096 spp agrees with Le to within its noise.
 #[test]
 fn high_spp_mean_does_not_drift() {
-    let mut v: Value = serde_json::from_str(&furnace_scene(r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#, 0.7, 3.0, SPHERE)).unwrap();
+    let mut v: Value = serde_json::from_str(&furnace_scene(
+        r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#,
+        0.7,
+        3.0,
+        SPHERE,
+    ))
+    .unwrap();
     v["camera"]["width"] = json!(4);
     v["camera"]["height"] = json!(4);
     v["camera"]["fov_y_deg"] = json!(20);
@@ -506,7 +667,10 @@ fn stray_far_vertices_change_nothing() {
     let dir = temp_dir("stray");
     let mut base = cornell_small(24);
     base["meshes"]["tri"] = json!({"obj": "tri.obj"});
-    base["instances"].as_array_mut().unwrap().push(json!({"mesh": "tri", "material": "white"}));
+    base["instances"]
+        .as_array_mut()
+        .unwrap()
+        .push(json!({"mesh": "tri", "material": "white"}));
     let render = |obj: &str| {
         std::fs::write(dir.join("tri.obj"), obj).unwrap();
         let scene = nppp_scene::parse_scene(&base.to_string(), &dir.join("scene.json")).unwrap();
@@ -514,9 +678,102 @@ fn stray_far_vertices_change_nothing() {
     };
     let tri = "v 100 10 100\nv 150 10 100\nv 100 10 150\nf 1 3 2\n";
     let clean = render(tri);
-    for extra in ["v 1e9 1e9 1e9\n", "v 1e9 1e9 1e9\nv 2e9 2e9 2e9\nv 3e9 3e9 3e9\nf 4 5 6\nf 1 4 4\n"] {
+    for extra in [
+        "v 1e9 1e9 1e9\n",
+        "v 1e9 1e9 1e9\nv 2e9 2e9 2e9\nv 3e9 3e9 3e9\nf 4 5 6\nf 1 4 4\n",
+    ] {
         let img = render(&format!("{tri}{extra}"));
-        assert!(img == clean, "{extra:?} changed the image: mean {:?} vs {:?}", img.mean(), clean.mean());
+        assert!(
+            img == clean,
+            "{extra:?} changed the image: mean {:?} vs {:?}",
+            img.mean(),
+            clean.mean()
+        );
     }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Smooth-shading normals that disagree wildly with the geometry (tangent,
+/// inverted, random) on a diffuse and a glass object: never a NaN, nothing
+/// dropped, and no energy from nowhere in a furnace.
+#[test]
+fn wild_shading_normals_stay_finite() {
+    let dir = temp_dir("normals");
+    let mut obj = octahedron_obj("");
+    let normals = [
+        [1.0, 0.0, 0.0],
+        [0.0, -1.0, 0.0],
+        [0.3, 0.3, -0.9],
+        [1e-20, 0.0, 1e-20],
+        [0.577, 0.577, 0.577],
+    ];
+    for n in normals {
+        obj += &format!("vn {} {} {}\n", n[0], n[1], n[2]);
+    }
+    // Re-emit the faces with normals, cycling through the list.
+    let faces: String = (0..8)
+        .map(|i| {
+            let v = |k: usize| format!("{}//{}", 3 * i + k + 1, (i + k) % normals.len() + 1);
+            format!("f {} {} {}\n", v(0), v(1), v(2))
+        })
+        .collect();
+    let obj = obj
+        .lines()
+        .filter(|l| !l.starts_with("f "))
+        .collect::<Vec<_>>()
+        .join("\n")
+        + "\n"
+        + &faces;
+    std::fs::write(dir.join("wild.obj"), obj).unwrap();
+    for material in [
+        r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#,
+        r#"{"type": "dielectric", "ior": 1.5}"#,
+        r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 0.3}"#,
+    ] {
+        let json = furnace_scene(material, 1.0, 3.0, r#"{"obj": "wild.obj", "smooth": true}"#);
+        let scene = nppp_scene::parse_scene(&json, &dir.join("scene.json")).unwrap();
+        let (img, st) = render_scene(&scene, 32, 16, 3);
+        assert_finite(&img, material);
+        assert_eq!(st.dropped_samples, 0, "{material}");
+        let m = luminance_mean(&img);
+        assert!(m > 0.5 && m < 1.05, "{material}: mean {m}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Cameras at the edges of what the contract allows: a field of view of
+/// 179.9 and 0.001 degrees, a 1024 x 1 strip and a single pixel.
+#[test]
+fn extreme_cameras_render_finite() {
+    let json = furnace_scene(
+        r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#,
+        1.0,
+        3.0,
+        SPHERE,
+    );
+    let mut scene = scene_from_str(&json);
+    for (fov, w, h) in [
+        (179.9f32, 16, 16),
+        (0.001, 4, 4),
+        (60.0, 1024, 1),
+        (60.0, 1, 1),
+    ] {
+        scene.camera.fov_y_deg = fov;
+        scene.camera.width = w;
+        scene.camera.height = h;
+        let (img, st) = render_scene(&scene, 8, 4, 1);
+        assert_finite(&img, &format!("fov {fov}, {w}x{h}"));
+        assert_eq!(st.dropped_samples, 0);
+        assert_eq!(img.pixels.len(), (w * h) as usize);
+    }
+    // Looking at the sphere's centre through a 0.001-degree pinhole: 0.5 Le.
+    scene.camera.fov_y_deg = 0.001;
+    scene.camera.width = 2;
+    scene.camera.height = 2;
+    let (img, _) = render_scene(&scene, 64, 4, 2);
+    assert!(
+        (luminance_mean(&img) - 0.5).abs() < 0.05,
+        "{:?}",
+        img.mean()
+    );
 }

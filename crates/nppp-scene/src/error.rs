@@ -8,12 +8,13 @@ use std::path::PathBuf;
 /// Why a scene could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    /// The scene file itself could not be read.
-    #[error("{}: cannot read the scene file: {source}", file.display())]
+    /// The scene file itself could not be read. The I/O error is part of
+    /// the message and deliberately not a `source()`: error reporters that
+    /// print the chain (`anyhow`'s `{:#}`) would say it twice.
+    #[error("{}: cannot read the scene file: {error}", file.display())]
     Read {
         file: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// The file is not JSON (syntax error, trailing characters, a number
     /// outside the f64 range such as `1e400`, a duplicated key). `key` is

@@ -23,9 +23,9 @@ pub const MAX_IMAGE_SIDE: u32 = 16384;
 /// Reads and validates a scene file. Relative OBJ and estimator paths are
 /// resolved against the file's folder.
 pub fn load_scene(path: &Path) -> Result<Scene, SceneError> {
-    let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
+    let text = std::fs::read_to_string(path).map_err(|error| SceneError::Read {
         file: path.to_path_buf(),
-        source,
+        error,
     })?;
     parse_scene(&text, path)
 }
