@@ -14,7 +14,14 @@ const RAYS: usize = 1 << 16;
 fn rays(rs: &RenderScene) -> (Vec<(Vec3, Vec3)>, Vec<(Vec3, Vec3)>, Vec<(Vec3, Vec3, f32)>) {
     let mut rng = SampleRng::from_seed(1);
     let (w, h) = (rs.camera.width as f32, rs.camera.height as f32);
-    let primary: Vec<(Vec3, Vec3)> = (0..RAYS).map(|_| (rs.camera.origin, rs.camera.ray_dir(rng.uniform2() * Vec2::new(w, h)))).collect();
+    let primary: Vec<(Vec3, Vec3)> = (0..RAYS)
+        .map(|_| {
+            (
+                rs.camera.origin,
+                rs.camera.ray_dir(rng.uniform2() * Vec2::new(w, h)),
+            )
+        })
+        .collect();
     // Incoherent: from the first hit of each primary ray, in a random direction.
     let mut incoherent = Vec::with_capacity(RAYS);
     let mut shadow = Vec::with_capacity(RAYS);
@@ -36,14 +43,31 @@ fn bvh(c: &mut Criterion) {
     let mut g = c.benchmark_group("bvh_2_threads");
     g.throughput(Throughput::Elements(primary.len() as u64));
     g.bench_function("closest_hit_primary", |b| {
-        b.iter(|| primary.par_iter().filter(|(o, d)| rs.accel.intersect(*o, *d, f32::INFINITY).is_some()).count())
+        b.iter(|| {
+            primary
+                .par_iter()
+                .filter(|(o, d)| rs.accel.intersect(*o, *d, f32::INFINITY).is_some())
+                .count()
+        })
     });
     g.throughput(Throughput::Elements(incoherent.len() as u64));
     g.bench_function("closest_hit_incoherent", |b| {
-        b.iter(|| incoherent.par_iter().filter(|(o, d)| rs.accel.intersect(*o, *d, f32::INFINITY).is_some()).count())
+        b.iter(|| {
+            incoherent
+                .par_iter()
+                .filter(|(o, d)| rs.accel.intersect(*o, *d, f32::INFINITY).is_some())
+                .count()
+        })
     });
     g.throughput(Throughput::Elements(shadow.len() as u64));
-    g.bench_function("occlusion", |b| b.iter(|| shadow.par_iter().filter(|(o, d, t)| rs.accel.occluded(*o, *d, *t)).count()));
+    g.bench_function("occlusion", |b| {
+        b.iter(|| {
+            shadow
+                .par_iter()
+                .filter(|(o, d, t)| rs.accel.occluded(*o, *d, *t))
+                .count()
+        })
+    });
     g.finish();
 }
 
@@ -52,8 +76,19 @@ fn bsdf(c: &mut Criterion) {
     g.throughput(Throughput::Elements(1024));
     let wo = Vec3::new(0.3, 0.2, 0.9).normalize();
     for (name, b) in [
-        ("diffuse", Bsdf::Diffuse { albedo: Vec3::splat(0.5) }),
-        ("ggx", Bsdf::Conductor { reflectance: Vec3::ONE, alpha: 0.3 }),
+        (
+            "diffuse",
+            Bsdf::Diffuse {
+                albedo: Vec3::splat(0.5),
+            },
+        ),
+        (
+            "ggx",
+            Bsdf::Conductor {
+                reflectance: Vec3::ONE,
+                alpha: 0.3,
+            },
+        ),
         ("dielectric", Bsdf::Dielectric { ior: 1.5 }),
     ] {
         let mut rng = SampleRng::from_seed(2);
@@ -81,7 +116,19 @@ fn path_tracing(c: &mut Criterion) {
     let mut g = c.benchmark_group("path_tracing_default_scene");
     g.sample_size(10);
     g.throughput(Throughput::Elements(64 * 64 * spp as u64));
-    g.bench_function("samples_M5", |b| b.iter(|| nppp_render::render(&rs, &RenderOptions { spp, max_bounces: 5, seed: 1, progress: false })));
+    g.bench_function("samples_M5", |b| {
+        b.iter(|| {
+            nppp_render::render(
+                &rs,
+                &RenderOptions {
+                    spp,
+                    max_bounces: 5,
+                    seed: 1,
+                    progress: false,
+                },
+            )
+        })
+    });
     g.finish();
 }
 

@@ -10,7 +10,11 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "nppp", version, about = "Path tracing with neural probabilistic path prediction")]
+#[command(
+    name = "nppp",
+    version,
+    about = "Path tracing with neural probabilistic path prediction"
+)]
 struct Cli {
     /// Worker threads (default: all cores).
     #[arg(long, global = true)]
@@ -52,7 +56,9 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     if let Some(t) = cli.threads {
         anyhow::ensure!(t >= 1, "--threads must be at least 1");
-        rayon::ThreadPoolBuilder::new().num_threads(t).build_global()?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(t)
+            .build_global()?;
     }
     match cli.command {
         Command::Render(a) => render_cmd::run(&a),

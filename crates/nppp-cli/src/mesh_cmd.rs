@@ -21,11 +21,25 @@ pub struct MeshArgs {
 pub fn run(a: &MeshArgs) -> Result<()> {
     let scene = nppp_scene::load_scene(&a.scene)?;
     let Some(i) = scene.mesh_names.iter().position(|n| *n == a.mesh) else {
-        anyhow::bail!("{}: no mesh named \"{}\" (defined: {})", a.scene.display(), a.mesh, scene.mesh_names.join(", "));
+        anyhow::bail!(
+            "{}: no mesh named \"{}\" (defined: {})",
+            a.scene.display(),
+            a.mesh,
+            scene.mesh_names.join(", ")
+        );
     };
     let m = &scene.meshes[i];
-    let tri = nppp_scene::procedural::TriMesh { positions: m.positions.clone(), triangles: m.triangles.clone() };
-    nppp_scene::procedural::write_obj(&tri, &a.out).with_context(|| format!("writing {}", a.out.display()))?;
-    eprintln!("{}: {} vertices, {} triangles", a.out.display(), m.positions.len(), m.triangles.len());
+    let tri = nppp_scene::procedural::TriMesh {
+        positions: m.positions.clone(),
+        triangles: m.triangles.clone(),
+    };
+    nppp_scene::procedural::write_obj(&tri, &a.out)
+        .with_context(|| format!("writing {}", a.out.display()))?;
+    eprintln!(
+        "{}: {} vertices, {} triangles",
+        a.out.display(),
+        m.positions.len(),
+        m.triangles.len()
+    );
     Ok(())
 }

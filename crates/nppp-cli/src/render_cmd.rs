@@ -67,7 +67,9 @@ struct BurnBatch(nppp_nn::decoder::BurnDecoder);
 
 impl BatchDecoder for BurnBatch {
     fn decode(&self, input: &[f32], rows: usize, output: &mut [f32]) -> Result<(), String> {
-        self.0.forward(input, rows, output).map_err(|e| e.to_string())
+        self.0
+            .forward(input, rows, output)
+            .map_err(|e| e.to_string())
     }
     fn name(&self) -> &str {
         "burn"
@@ -83,7 +85,10 @@ fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
     };
     for e in &mut ests.list {
         if let EstimatorModel::Neural { sampler, decoder } = &mut e.model {
-            *decoder = Some(Box::new(BurnBatch(nppp_nn::decoder::BurnDecoder::new(&sampler.baked().decoder, backend)?)));
+            *decoder = Some(Box::new(BurnBatch(nppp_nn::decoder::BurnDecoder::new(
+                &sampler.baked().decoder,
+                backend,
+            )?)));
         }
     }
     Ok(())
@@ -122,7 +127,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         attach_decoders(e, a.decoder)?;
     }
     let build = t0.elapsed().as_secs_f64();
-    let opts = RenderOptions { spp: settings.spp, max_bounces: settings.max_bounces, seed: settings.seed, progress: !a.quiet };
+    let opts = RenderOptions {
+        spp: settings.spp,
+        max_bounces: settings.max_bounces,
+        seed: settings.seed,
+        progress: !a.quiet,
+    };
     let (img, stats) = nppp_render::render(&rs, &opts);
     image_io::write_exr(&img, &a.out).with_context(|| "writing the EXR")?;
     if let Some(p) = &a.png {
@@ -159,13 +169,28 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         m[0],
         m[1],
         m[2],
-        if stats.dropped_samples > 0 { format!(", {} non-finite samples dropped", stats.dropped_samples) } else { String::new() }
+        if stats.dropped_samples > 0 {
+            format!(", {} non-finite samples dropped", stats.dropped_samples)
+        } else {
+            String::new()
+        }
     );
     if let Some(r) = &reference {
-        let e = nppp_render::metrics::compare(&img, r).with_context(|| format!("comparing with {}", a.reference.as_ref().map(|p| p.display().to_string()).unwrap_or_default()))?;
+        let e = nppp_render::metrics::compare(&img, r).with_context(|| {
+            format!(
+                "comparing with {}",
+                a.reference
+                    .as_ref()
+                    .map(|p| p.display().to_string())
+                    .unwrap_or_default()
+            )
+        })?;
         eprintln!(
             "error vs {}: relMSE {:.5}, relMSE (brightest 0.1% dropped) {:.5}, MAPE {:.4}, RMSE {:.5}; {:.2}s",
-            a.reference.as_ref().map(|p| p.display().to_string()).unwrap_or_default(),
+            a.reference
+                .as_ref()
+                .map(|p| p.display().to_string())
+                .unwrap_or_default(),
             e.rel_mse,
             e.rel_mse_trimmed,
             e.mape,

@@ -723,7 +723,10 @@ impl DatasetReader {
         for c in 0..chunks as usize {
             let e = ChunkEntry { offset: le_u64(&ibuf, 16 * c), rays: le_u32(&ibuf, 16 * c + 8), hits: le_u32(&ibuf, 16 * c + 12) };
             let prev_end = index.last().map_or(data_start, |q: &ChunkEntry| q.offset + CHUNK_HEADER_LEN as u64);
-            if (c == 0 && e.offset != data_start) || e.offset < prev_end || e.offset.checked_add(CHUNK_HEADER_LEN as u64).is_none_or(|end| end > index_offset) {
+            if (c == 0 && e.offset != data_start)
+                || e.offset < prev_end
+                || e.offset.checked_add(CHUNK_HEADER_LEN as u64).is_none_or(|end| end > index_offset)
+            {
                 return Err(incomplete(format!("chunk index entry {c} points at byte {} (out of order or outside the data)", e.offset)));
             }
             if e.rays == 0 || e.rays > MAX_CHUNK_RAYS || e.hits > e.rays {

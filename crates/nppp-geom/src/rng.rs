@@ -82,7 +82,10 @@ mod tests {
         let c = SampleRng::new(0, 0, 1).uniform();
         let d = SampleRng::new(1, 0, 0).uniform();
         assert!(a != b && a != c && a != d && b != c);
-        assert_eq!(SampleRng::new(5, 6, 7).uniform(), SampleRng::new(5, 6, 7).uniform());
+        assert_eq!(
+            SampleRng::new(5, 6, 7).uniform(),
+            SampleRng::new(5, 6, 7).uniform()
+        );
     }
 
     #[test]

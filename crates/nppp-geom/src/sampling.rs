@@ -94,7 +94,10 @@ mod tests {
         // E[cos] under p = cos/pi is 2/3.
         let mut r = crate::SampleRng::from_seed(3);
         let n = 100_000;
-        let m: f64 = (0..n).map(|_| cosine_hemisphere(r.uniform2()).z as f64).sum::<f64>() / n as f64;
+        let m: f64 = (0..n)
+            .map(|_| cosine_hemisphere(r.uniform2()).z as f64)
+            .sum::<f64>()
+            / n as f64;
         assert!((m - 2.0 / 3.0).abs() < 0.005, "{m}");
     }
 }

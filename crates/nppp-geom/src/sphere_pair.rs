@@ -26,12 +26,23 @@ impl BoundingSphere {
     /// `margin` (relative) so that no surface point lies on the sphere itself.
     pub fn around(points: &[Vec3], margin: f32) -> Self {
         if points.is_empty() {
-            return Self { center: Vec3::ZERO, radius: 1.0 };
+            return Self {
+                center: Vec3::ZERO,
+                radius: 1.0,
+            };
         }
         // Ritter: start from a near-diameter (the point farthest from an
         // arbitrary point, and the point farthest from that), then grow the
         // sphere to include any outlier.
-        let far = |from: Vec3| *points.iter().max_by(|a, b| a.distance_squared(from).total_cmp(&b.distance_squared(from))).unwrap_or(&from);
+        let far = |from: Vec3| {
+            *points
+                .iter()
+                .max_by(|a, b| {
+                    a.distance_squared(from)
+                        .total_cmp(&b.distance_squared(from))
+                })
+                .unwrap_or(&from)
+        };
         let y = far(points[0]);
         let z = far(y);
         let mut center = (y + z) * 0.5;
@@ -44,7 +55,10 @@ impl BoundingSphere {
                 radius = new_r;
             }
         }
-        let exact = points.iter().map(|p| p.distance(center)).fold(0.0f32, f32::max);
+        let exact = points
+            .iter()
+            .map(|p| p.distance(center))
+            .fold(0.0f32, f32::max);
         let radius = exact.max(f32::MIN_POSITIVE) * (1.0 + margin);
         Self { center, radius }
     }
@@ -77,7 +91,10 @@ pub fn unit_sphere_chord(ray: &Ray) -> Option<Chord> {
         return None;
     }
     let h = h2.sqrt();
-    Some(Chord { t_in: -b - h, t_out: -b + h })
+    Some(Chord {
+        t_in: -b - h,
+        t_out: -b + h,
+    })
 }
 
 /// The 4D coordinates of a chord: (u1, v1) of the entry point, (u2, v2) of the exit point.
@@ -87,7 +104,11 @@ pub struct SpherePair(pub [f32; 4]);
 /// (u, v) of a point on (or near) the unit sphere; the point is projected radially.
 pub fn point_to_uv(p: Vec3) -> Vec2 {
     let len = p.length();
-    let z = if len > 0.0 { (p.z / len).clamp(-1.0, 1.0) } else { 1.0 };
+    let z = if len > 0.0 {
+        (p.z / len).clamp(-1.0, 1.0)
+    } else {
+        1.0
+    };
     let mut phi = p.y.atan2(p.x);
     if phi < 0.0 {
         phi += TAU;
@@ -187,7 +208,9 @@ mod tests {
     #[test]
     fn bounding_sphere_of_a_sphere_is_tight() {
         let mut r = crate::SampleRng::from_seed(4);
-        let pts: Vec<Vec3> = (0..2000).map(|_| uniform_sphere(r.uniform2()) * 0.5 + Vec3::new(3.0, -1.0, 2.0)).collect();
+        let pts: Vec<Vec3> = (0..2000)
+            .map(|_| uniform_sphere(r.uniform2()) * 0.5 + Vec3::new(3.0, -1.0, 2.0))
+            .collect();
         let s = BoundingSphere::around(&pts, 0.0);
         assert!(s.radius < 0.5 * 1.03, "radius {}", s.radius);
         assert!(s.center.distance(Vec3::new(3.0, -1.0, 2.0)) < 0.02);
@@ -196,7 +219,8 @@ mod tests {
     #[test]
     fn missing_and_tangent_rays() {
         assert!(SpherePair::from_ray(&Ray::new(Vec3::new(0.0, 2.0, -5.0), Vec3::Z)).is_none());
-        let (pair, chord) = SpherePair::from_ray(&Ray::new(Vec3::new(0.0, 1.0, -5.0), Vec3::Z)).unwrap();
+        let (pair, chord) =
+            SpherePair::from_ray(&Ray::new(Vec3::new(0.0, 1.0, -5.0), Vec3::Z)).unwrap();
         assert!((chord.t_in - chord.t_out).abs() < 1e-3);
         assert!(pair.0.iter().all(|x| x.is_finite()));
         // Poles: u = 0 and u = 1 exactly, any v.

@@ -51,12 +51,22 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().cmd {
         Cmd::Train(o) => println!("{}", serde_json::to_string_pretty(&nppp_nn::train(&o)?)?),
         Cmd::Bake(o) => println!("{}", serde_json::to_string_pretty(&nppp_nn::bake(&o)?)?),
-        Cmd::Sweep { bake, res, bit_depths } => {
+        Cmd::Sweep {
+            bake,
+            res,
+            bit_depths,
+        } => {
             let rows = nppp_nn::bake_sweep(&bake, &res, &bit_depths)?;
             println!("{}", serde_json::to_string_pretty(&rows)?);
             println!("{}", nppp_nn::bake::sweep_table(&rows));
         }
-        Cmd::Synthetic { object, rays, file_k, data_seed, train } => {
+        Cmd::Synthetic {
+            object,
+            rays,
+            file_k,
+            data_seed,
+            train,
+        } => {
             let obj = match object.as_str() {
                 "mirror" => SyntheticObject::Mirror { radius: 0.6 },
                 "diffuse" => SyntheticObject::AbsorbingDiffuse { radius: 0.6 },

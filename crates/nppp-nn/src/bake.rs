@@ -229,7 +229,12 @@ pub struct RawGrids {
 }
 
 /// Evaluates the encoder and the mask network at every node.
-pub fn compute_grids(loaded: &LoadedModel, latent_res: u32, mask_res: u32, quiet: bool) -> Result<RawGrids> {
+pub fn compute_grids(
+    loaded: &LoadedModel,
+    latent_res: u32,
+    mask_res: u32,
+    quiet: bool,
+) -> Result<RawGrids> {
     // Both sizes are checked before the (long) encoder pass.
     check_res("latent-grid", latent_res, loaded.model_config.latent_dim)?;
     check_res("mask-grid", mask_res, 1)?;
@@ -257,7 +262,12 @@ pub fn compute_grids(loaded: &LoadedModel, latent_res: u32, mask_res: u32, quiet
 }
 
 /// Quantizes raw grids into an estimator stamped with the model's identity.
-pub fn assemble(loaded: &LoadedModel, grids: &RawGrids, bits: u8, mask_bits: u8) -> Result<BakedEstimator> {
+pub fn assemble(
+    loaded: &LoadedModel,
+    grids: &RawGrids,
+    bits: u8,
+    mask_bits: u8,
+) -> Result<BakedEstimator> {
     let ds = &loaded.meta.dataset;
     let meta = EstimatorMeta {
         mesh_name: ds.mesh_name.clone(),

@@ -59,12 +59,23 @@ pub fn is_heldout(index: usize, holdout_every: usize) -> bool {
 }
 
 fn check_ray(i: usize, r: &RaySample, k: usize) -> Result<()> {
-    if !r.pair.0.iter().all(|x| x.is_finite() && (-1e-3..=1.0 + 1e-3).contains(x)) {
-        bail!("ray {i}: sphere-pair coordinates {:?} are not in [0, 1]", r.pair.0);
+    if !r
+        .pair
+        .0
+        .iter()
+        .all(|x| x.is_finite() && (-1e-3..=1.0 + 1e-3).contains(x))
+    {
+        bail!(
+            "ray {i}: sphere-pair coordinates {:?} are not in [0, 1]",
+            r.pair.0
+        );
     }
     if r.hit {
         if r.exits.len() != k {
-            bail!("ray {i}: a hit with {} exits, expected k = {k}", r.exits.len());
+            bail!(
+                "ray {i}: a hit with {} exits, expected k = {k}",
+                r.exits.len()
+            );
         }
         for (j, e) in r.exits.iter().enumerate() {
             let ok = e.position.is_finite()

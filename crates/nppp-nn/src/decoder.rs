@@ -37,7 +37,10 @@ impl MlpNet {
                 }
                 Linear {
                     weight: Param::from_data(TensorData::new(w, [l.inputs, l.outputs]), device),
-                    bias: Some(Param::from_data(TensorData::new(l.bias.clone(), [l.outputs]), device)),
+                    bias: Some(Param::from_data(
+                        TensorData::new(l.bias.clone(), [l.outputs]),
+                        device,
+                    )),
                 }
             })
             .collect();
@@ -49,7 +52,13 @@ impl BurnDecoder {
     pub fn new(mlp: &Mlp, backend: BackendKind) -> Result<Self> {
         let device = backend.device()?;
         let net = MlpNet::from_mlp(mlp, &device)?;
-        Ok(Self { net, device, inputs: mlp.inputs(), outputs: mlp.outputs(), backend })
+        Ok(Self {
+            net,
+            device,
+            inputs: mlp.inputs(),
+            outputs: mlp.outputs(),
+            backend,
+        })
     }
 
     pub fn backend(&self) -> BackendKind {
@@ -62,10 +71,22 @@ impl BurnDecoder {
             return Ok(());
         }
         if input.len() < rows * self.inputs || output.len() < rows * self.outputs {
-            return Err(anyhow!("decoder batch: {} inputs / {} outputs for {rows} rows", input.len(), output.len()));
+            return Err(anyhow!(
+                "decoder batch: {} inputs / {} outputs for {rows} rows",
+                input.len(),
+                output.len()
+            ));
         }
-        let x = Tensor::<2>::from_data(TensorData::new(input[..rows * self.inputs].to_vec(), [rows, self.inputs]), &self.device);
-        let y = self.net.forward(x).into_data().to_vec::<f32>().map_err(|e| anyhow!("decoder output: {e:?}"))?;
+        let x = Tensor::<2>::from_data(
+            TensorData::new(input[..rows * self.inputs].to_vec(), [rows, self.inputs]),
+            &self.device,
+        );
+        let y = self
+            .net
+            .forward(x)
+            .into_data()
+            .try_to_vec::<f32>()
+            .map_err(|e| anyhow!("decoder output: {e:?}"))?;
         output[..rows * self.outputs].copy_from_slice(&y);
         Ok(())
     }
@@ -104,7 +125,10 @@ mod tests {
             let mut got = vec![0.0; rows * 13];
             dec.forward(&input, rows, &mut got).unwrap();
             for (a, b) in got.iter().zip(&want) {
-                assert!((a - b).abs() <= 1e-4 * (1.0 + b.abs()), "{backend}: {a} vs {b}");
+                assert!(
+                    (a - b).abs() <= 1e-4 * (1.0 + b.abs()),
+                    "{backend}: {a} vs {b}"
+                );
             }
         }
     }

@@ -130,11 +130,15 @@ impl ExitSource for BurnEstimator {
                 let mut rng = eval_rng(seed, first_index + (ci * per_call + j) as u64);
                 noise.extend((0..k * nd).map(|_| rng.normal()));
             }
-            let noise = Tensor::from_data(TensorData::new(noise, [chunk.len() * k, nd]), &self.device);
+            let noise =
+                Tensor::from_data(TensorData::new(noise, [chunk.len() * k, nd]), &self.device);
             let y = to_vec(self.model.generate(self.features(chunk), noise, k))?;
             for f in y.chunks_exact(EXIT_FEATURES) {
                 let f: &[f32; EXIT_FEATURES] = f.try_into().expect("chunk of EXIT_FEATURES");
-                out.push(self.transform.decode(f, self.max_bounces, &mut self.repairs));
+                out.push(
+                    self.transform
+                        .decode(f, self.max_bounces, &mut self.repairs),
+                );
             }
         }
         Ok(out)
@@ -252,7 +256,8 @@ pub fn evaluate(
             generated.len()
         );
     }
-    let encode = |es: &[Exit]| -> Vec<f32> { es.iter().flat_map(|e| transform.encode(e)).collect() };
+    let encode =
+        |es: &[Exit]| -> Vec<f32> { es.iter().flat_map(|e| transform.encode(e)).collect() };
     let (mut tp_abs, mut tp_signed, mut tp_real, mut tp_floor) = (0.0, 0.0, 0.0, 0.0);
     let mut tp_excess_sq = 0.0;
     let (mut rd_abs, mut rd_signed, mut rd_real) = (0.0, 0.0, 0.0);

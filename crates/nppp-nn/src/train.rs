@@ -27,7 +27,9 @@ use crate::data::TrainingData;
 use crate::eval::{BurnEstimator, EvalOptions, HeldoutMetrics, evaluate};
 use crate::features::INPUT_FEATURES;
 use crate::io::{DatasetInfo, ModelMeta, load_dataset};
-use crate::loss::{bce_with_logits, chamfer_from_dists, energy_distance_trainable, pairwise_sq_dists};
+use crate::loss::{
+    bce_with_logits, chamfer_from_dists, energy_distance_trainable, pairwise_sq_dists,
+};
 use crate::model::{ModelConfig, NpppModel};
 
 /// File names inside a model directory.
@@ -224,7 +226,8 @@ impl TrainConfig {
             return self.lr;
         }
         let t = ((s - start) / (total as f64 - start).max(1.0)).clamp(0.0, 1.0);
-        let f = self.lr_final + (1.0 - self.lr_final) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos());
+        let f =
+            self.lr_final + (1.0 - self.lr_final) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos());
         self.lr * f
     }
 
@@ -357,7 +360,11 @@ pub fn train(opts: &TrainOptions) -> Result<TrainReport> {
 
 /// Trains on data already in memory (the tests and tools use this with
 /// synthetic rays; `info` names the object as a data file header would).
-pub fn train_with_data(opts: &TrainOptions, info: DatasetInfo, data: TrainingData) -> Result<TrainReport> {
+pub fn train_with_data(
+    opts: &TrainOptions,
+    info: DatasetInfo,
+    data: TrainingData,
+) -> Result<TrainReport> {
     let cfg = resolve_config(opts)?;
     if data.heldout.is_empty() {
         bail!("no held-out rays");
@@ -383,8 +390,9 @@ fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
                 opts.out.display()
             );
         }
-        let cfg = TrainConfig::load(&saved_path)
-            .map_err(|e| anyhow::anyhow!("--resume: cannot read {}: {e:?}", saved_path.display()))?;
+        let cfg = TrainConfig::load(&saved_path).map_err(|e| {
+            anyhow::anyhow!("--resume: cannot read {}: {e:?}", saved_path.display())
+        })?;
         let clash = |name: &str, given: Option<String>, saved: String| -> Result<()> {
             match given {
                 Some(g) if g != saved => bail!(
@@ -400,14 +408,42 @@ fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
         clash("batch", s(opts.batch), cfg.batch.to_string())?;
         clash("k", s(opts.k), cfg.k.to_string())?;
         clash("mask-batch", s(opts.mask_batch), cfg.mask_batch.to_string())?;
-        clash("energy-weight", s(opts.energy_weight), cfg.energy_weight.to_string())?;
+        clash(
+            "energy-weight",
+            s(opts.energy_weight),
+            cfg.energy_weight.to_string(),
+        )?;
         clash("seed", s(opts.seed), cfg.seed.to_string())?;
-        clash("holdout-every", s(opts.holdout_every), cfg.holdout_every.to_string())?;
-        clash("steps-per-epoch", s(opts.steps_per_epoch), cfg.steps_per_epoch.to_string())?;
-        clash("latent-dim", s(opts.latent_dim), cfg.model.latent_dim.to_string())?;
-        clash("encoder-width", s(opts.encoder_width), cfg.model.encoder_width.to_string())?;
-        clash("decoder-width", s(opts.decoder_width), cfg.model.decoder_width.to_string())?;
-        clash("mask-width", s(opts.mask_width), cfg.model.mask_width.to_string())?;
+        clash(
+            "holdout-every",
+            s(opts.holdout_every),
+            cfg.holdout_every.to_string(),
+        )?;
+        clash(
+            "steps-per-epoch",
+            s(opts.steps_per_epoch),
+            cfg.steps_per_epoch.to_string(),
+        )?;
+        clash(
+            "latent-dim",
+            s(opts.latent_dim),
+            cfg.model.latent_dim.to_string(),
+        )?;
+        clash(
+            "encoder-width",
+            s(opts.encoder_width),
+            cfg.model.encoder_width.to_string(),
+        )?;
+        clash(
+            "decoder-width",
+            s(opts.decoder_width),
+            cfg.model.decoder_width.to_string(),
+        )?;
+        clash(
+            "mask-width",
+            s(opts.mask_width),
+            cfg.model.mask_width.to_string(),
+        )?;
         cfg
     } else {
         if checkpoint_dir(&opts.out).is_some() {
@@ -508,7 +544,13 @@ fn epoch_permutation(seed: u64, epoch: u64, n: usize) -> Vec<u32> {
     p
 }
 
-fn make_batch(cfg: &TrainConfig, data: &TrainingData, perm: &[u32], step: u64, spe: usize) -> Batch {
+fn make_batch(
+    cfg: &TrainConfig,
+    data: &TrainingData,
+    perm: &[u32],
+    step: u64,
+    spe: usize,
+) -> Batch {
     let tr = &data.train;
     let n_hit = tr.hits();
     let b = cfg.batch;
@@ -601,7 +643,12 @@ fn train_step(
         + bce.clone().mul_scalar(cfg.mask_weight);
     // One read-back per step: the values for the log and the finiteness check.
     let values = Tensor::cat(
-        vec![loss.clone().detach(), chamfer.detach(), energy.detach(), bce.detach()],
+        vec![
+            loss.clone().detach(),
+            chamfer.detach(),
+            energy.detach(),
+            bce.detach(),
+        ],
         0,
     )
     .into_data()
@@ -755,7 +802,12 @@ fn append_log(path: &Path, row: &str) -> Result<()> {
     Ok(())
 }
 
-fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: TrainingData) -> Result<TrainReport> {
+fn train_on(
+    opts: &TrainOptions,
+    cfg: TrainConfig,
+    info: DatasetInfo,
+    data: TrainingData,
+) -> Result<TrainReport> {
     let out = &opts.out;
     let device = opts.backend.device()?;
     let ad = device.clone().autodiff();
@@ -789,7 +841,10 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
             );
         }
         if state.steps_per_epoch != spe {
-            bail!("--resume: steps per epoch changed ({} -> {spe})", state.steps_per_epoch);
+            bail!(
+                "--resume: steps per epoch changed ({} -> {spe})",
+                state.steps_per_epoch
+            );
         }
         let model = load_weights(&ckpt, &cfg.model, &ad)?;
         let opath = ckpt.join(files::OPTIMIZER);
@@ -802,7 +857,10 @@ fn train_on(opts: &TrainOptions, cfg: TrainConfig, info: DatasetInfo, data: Trai
         (model, optim, state)
     } else {
         let meta = ModelMeta::new(info.clone(), data.transform.clone(), opts.data.clone());
-        write_json_atomic(&out.join(files::META), &serde_json::to_string_pretty(&meta)?)?;
+        write_json_atomic(
+            &out.join(files::META),
+            &serde_json::to_string_pretty(&meta)?,
+        )?;
         cfg.model
             .save(out.join(files::MODEL_CONFIG))
             .with_context(|| format!("writing {}", files::MODEL_CONFIG))?;

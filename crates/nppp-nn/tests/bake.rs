@@ -10,7 +10,9 @@ use nppp_estimator::{BakedEstimator, DatasetWriter};
 use nppp_geom::SpherePair;
 use nppp_nn::eval::BurnEstimator;
 use nppp_nn::synthetic::SyntheticObject;
-use nppp_nn::{BackendKind, BakeOptions, TrainOptions, bake, load_model_dir, synthetic_header, train};
+use nppp_nn::{
+    BackendKind, BakeOptions, TrainOptions, bake, load_model_dir, synthetic_header, train,
+};
 
 fn tmp(name: &str) -> PathBuf {
     let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("nppp-nn-{name}"));
@@ -54,7 +56,9 @@ fn baked_nodes_equal_the_encoder_within_the_quantization_step() {
     let loaded = load_model_dir(&model, &device).unwrap();
     let est = BurnEstimator::new(&loaded.model, loaded.meta.transform.clone(), 16, 16).unwrap();
     let res = 4u32;
-    let nodes: Vec<SpherePair> = (0..res.pow(4) as usize).map(|i| SpherePair(node_coords(res, i))).collect();
+    let nodes: Vec<SpherePair> = (0..res.pow(4) as usize)
+        .map(|i| SpherePair(node_coords(res, i)))
+        .collect();
     let z = est.latents(&nodes).unwrap();
     for bits in [8u8, 4, 2] {
         let out = dir.join(format!("m{bits}.nppp"));
@@ -78,7 +82,12 @@ fn baked_nodes_equal_the_encoder_within_the_quantization_step() {
         for (k, &x) in z.iter().enumerate() {
             let step = b.latent.scale[k % c];
             let got = b.latent.node_value(k / c, k % c);
-            assert!((got - x).abs() <= 0.5 * step + 1e-5 * x.abs().max(1.0), "node {} ch {}: {got} vs {x} (step {step})", k / c, k % c);
+            assert!(
+                (got - x).abs() <= 0.5 * step + 1e-5 * x.abs().max(1.0),
+                "node {} ch {}: {got} vs {x} (step {step})",
+                k / c,
+                k % c
+            );
         }
         // The decoder in the file is the trained one, exactly.
         assert_eq!(b.decoder, loaded.model.export_decoder().unwrap());

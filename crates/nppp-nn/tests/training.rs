@@ -6,7 +6,10 @@ use std::path::PathBuf;
 
 use nppp_nn::synthetic::SyntheticObject;
 use nppp_nn::train::files;
-use nppp_nn::{BackendKind, DatasetInfo, synthetic_header, TrainError, TrainOptions, TrainingData, train_with_data};
+use nppp_nn::{
+    BackendKind, DatasetInfo, TrainError, TrainOptions, TrainingData, synthetic_header,
+    train_with_data,
+};
 
 fn tmp(name: &str) -> PathBuf {
     let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("nppp-nn-{name}"));
@@ -16,7 +19,10 @@ fn tmp(name: &str) -> PathBuf {
 
 fn mirror_data(n: usize, k: usize) -> (DatasetInfo, TrainingData) {
     let rays = SyntheticObject::Mirror { radius: 0.6 }.rays(n, k, 11);
-    (synthetic_header("mirror", k), TrainingData::build(rays, k, 10).unwrap())
+    (
+        synthetic_header("mirror", k),
+        TrainingData::build(rays, k, 10).unwrap(),
+    )
 }
 
 /// A small, fast configuration on NdArray.
@@ -70,7 +76,13 @@ fn tiny_run_learns_and_is_deterministic() {
     let strip = |rows: Vec<Vec<String>>| -> Vec<Vec<String>> {
         // elapsed_s and seconds_per_step are wall-clock: drop them.
         rows.into_iter()
-            .map(|r| r.into_iter().enumerate().filter(|(i, _)| *i != 2 && *i != 18).map(|x| x.1).collect())
+            .map(|r| {
+                r.into_iter()
+                    .enumerate()
+                    .filter(|(i, _)| *i != 2 && *i != 18)
+                    .map(|x| x.1)
+                    .collect()
+            })
             .collect()
     };
     assert_eq!(strip(log_rows(&dir)), strip(log_rows(&dir2)));
@@ -78,7 +90,9 @@ fn tiny_run_learns_and_is_deterministic() {
 
 /// Every weight of a model directory's checkpoint, in a fixed order.
 fn weights(dir: &PathBuf) -> Vec<u32> {
-    let m = nppp_nn::load_model_dir(dir, &BackendKind::Ndarray.device().unwrap()).unwrap().model;
+    let m = nppp_nn::load_model_dir(dir, &BackendKind::Ndarray.device().unwrap())
+        .unwrap()
+        .model;
     [&m.encoder, &m.decoder, &m.mask]
         .iter()
         .flat_map(|n| n.to_mlp().unwrap().layers)
@@ -124,7 +138,11 @@ fn resume_continues_from_the_saved_step() {
     assert!(err.to_string().contains("batch"), "{err}");
     // Same weights as the uninterrupted run, bit for bit (the files
     // themselves differ: they carry random parameter ids).
-    assert_eq!(weights(&a), weights(&b), "resumed weights differ from the uninterrupted run's");
+    assert_eq!(
+        weights(&a),
+        weights(&b),
+        "resumed weights differ from the uninterrupted run's"
+    );
     assert_eq!(log_rows(&b).len(), 3);
 }
 
@@ -140,13 +158,19 @@ fn non_finite_loss_stops_and_keeps_the_last_good_checkpoint() {
     o.lr = Some(1e30);
     let err = train_with_data(&o, info.clone(), data.clone()).unwrap_err();
     let msg = err.to_string();
-    let Some(TrainError::NonFinite { step, last_good, .. }) = err.downcast_ref::<TrainError>() else {
+    let Some(TrainError::NonFinite {
+        step, last_good, ..
+    }) = err.downcast_ref::<TrainError>()
+    else {
         panic!("expected a non-finite error, got {msg}");
     };
     assert!(*step > 25 && *step <= 100, "{msg}");
     assert_eq!(*last_good, 25);
     assert!(msg.contains(&format!("step {step}")), "{msg}");
-    assert!(weights(&dir) == good, "the last good checkpoint was overwritten");
+    assert!(
+        weights(&dir) == good,
+        "the last good checkpoint was overwritten"
+    );
     // And it still resumes normally.
     let mut o = opts(&dir).tap_epochs(2);
     o.resume = true;
@@ -158,7 +182,11 @@ fn corrupt_checkpoint_is_an_error_not_a_panic() {
     let (info, data) = mirror_data(300, 4);
     let dir = tmp("corrupt");
     train_with_data(&opts(&dir).tap_epochs(1), info.clone(), data.clone()).unwrap();
-    fs::write(dir.join(files::CHECKPOINT).join(files::WEIGHTS), b"not a burnpack file").unwrap();
+    fs::write(
+        dir.join(files::CHECKPOINT).join(files::WEIGHTS),
+        b"not a burnpack file",
+    )
+    .unwrap();
     let mut o = opts(&dir).tap_epochs(2);
     o.resume = true;
     let err = train_with_data(&o, info.clone(), data.clone()).unwrap_err();

@@ -8,7 +8,9 @@
 
 use glam::{Quat, Vec3, Vec3A};
 use nppp_scene::{Mesh, Transform};
-use obvhs::{BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, ray::Ray as BvhRay, ray::RayHit, triangle::Triangle};
+use obvhs::{
+    BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, ray::Ray as BvhRay, ray::RayHit, triangle::Triangle,
+};
 use std::time::Duration;
 
 /// A triangle stored for intersection: a vertex and two edges, full precision.
@@ -41,7 +43,11 @@ impl TriEdges {
             return None;
         }
         let t = self.e2.dot(q) * inv;
-        if t > tmin && t < tmax { Some((t, b1, b2)) } else { None }
+        if t > tmin && t < tmax {
+            Some((t, b1, b2))
+        } else {
+            None
+        }
     }
 }
 
@@ -78,7 +84,11 @@ fn hit_bounds(mesh: &Mesh) -> (Vec3, Vec3) {
             hi = hi.max(a.max(b).max(c));
         }
     }
-    if lo.x > hi.x { (Vec3::ZERO, Vec3::ZERO) } else { (lo, hi) }
+    if lo.x > hi.x {
+        (Vec3::ZERO, Vec3::ZERO)
+    } else {
+        (lo, hi)
+    }
 }
 
 impl Blas {
@@ -94,24 +104,47 @@ impl Blas {
             .collect();
         let (lo, hi) = hit_bounds(mesh);
         if tris.is_empty() {
-            return Self { bvh: None, tris: vec![], prim_index: vec![], bounds: (Vec3::ZERO, Vec3::ZERO) };
+            return Self {
+                bvh: None,
+                tris: vec![],
+                prim_index: vec![],
+                bounds: (Vec3::ZERO, Vec3::ZERO),
+            };
         }
-        let bvh = obvhs::cwbvh::builder::build_cwbvh_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
+        let bvh = obvhs::cwbvh::builder::build_cwbvh_from_tris(
+            &tris,
+            BvhBuildParams::medium_build(),
+            &mut Duration::default(),
+        );
         // Reorder once so leaves index triangles directly (no indirection per test).
         let prim_index: Vec<u32> = bvh.primitive_indices.clone();
         let stored = prim_index
             .iter()
             .map(|&i| {
                 let t = &tris[i as usize];
-                TriEdges { v0: t.v0, e1: t.v1 - t.v0, e2: t.v2 - t.v0 }
+                TriEdges {
+                    v0: t.v0,
+                    e1: t.v1 - t.v0,
+                    e2: t.v2 - t.v0,
+                }
             })
             .collect();
-        Self { bvh: Some(bvh), tris: stored, prim_index, bounds: (lo, hi) }
+        Self {
+            bvh: Some(bvh),
+            tris: stored,
+            prim_index,
+            bounds: (lo, hi),
+        }
     }
 
     /// A mesh that only lives in the merged BLAS: its bounds, no BVH.
     pub fn bounds_only(mesh: &Mesh) -> Self {
-        Self { bvh: None, tris: vec![], prim_index: vec![], bounds: hit_bounds(mesh) }
+        Self {
+            bvh: None,
+            tris: vec![],
+            prim_index: vec![],
+            bounds: hit_bounds(mesh),
+        }
     }
 
     pub fn triangle_count(&self) -> usize {
@@ -125,12 +158,19 @@ impl Blas {
         let ray = BvhRay::new(o, d, tmin, tmax);
         let mut hit = RayHit::none();
         let mut best: Option<ObjectHit> = None;
-        bvh.ray_traverse(ray, &mut hit, |r, id| match self.tris[id].intersect(r.origin, r.direction, r.tmin, r.tmax) {
-            Some((t, b1, b2)) => {
-                best = Some(ObjectHit { t, prim: self.prim_index[id], b1, b2 });
-                t
+        bvh.ray_traverse(ray, &mut hit, |r, id| {
+            match self.tris[id].intersect(r.origin, r.direction, r.tmin, r.tmax) {
+                Some((t, b1, b2)) => {
+                    best = Some(ObjectHit {
+                        t,
+                        prim: self.prim_index[id],
+                        b1,
+                        b2,
+                    });
+                    t
+                }
+                None => f32::INFINITY,
             }
-            None => f32::INFINITY,
         });
         best
     }
@@ -138,10 +178,14 @@ impl Blas {
     /// True if anything lies in (tmin, tmax); stops at the first hit.
     #[inline]
     pub fn occluded(&self, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
-        let Some(bvh) = self.bvh.as_ref() else { return false };
+        let Some(bvh) = self.bvh.as_ref() else {
+            return false;
+        };
         let ray = BvhRay::new(o, d, tmin, tmax);
         !bvh.ray_traverse_miss(ray, |r, id| {
-            self.tris[id].intersect(r.origin, r.direction, r.tmin, r.tmax).map_or(f32::INFINITY, |h| h.0)
+            self.tris[id]
+                .intersect(r.origin, r.direction, r.tmin, r.tmax)
+                .map_or(f32::INFINITY, |h| h.0)
         })
     }
 }
@@ -234,27 +278,55 @@ fn transformed_bounds(x: &InstanceXform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
         b = b.max(w);
     }
     // Rotation rounding can shave the last ulp off a corner: pad a little.
-    let pad = (b - a).max_element().max(a.abs().max_element()).max(b.abs().max_element()) * 1e-6;
+    let pad = (b - a)
+        .max_element()
+        .max(a.abs().max_element())
+        .max(b.abs().max_element())
+        * 1e-6;
     (a - pad, b + pad)
 }
 
 impl Accel {
     /// Builds the BLASes (in parallel) and the TLAS. `keep_separate[i]` keeps
     /// instance `i` out of the merged BLAS.
-    pub fn build(meshes: &[Mesh], instances: &[(usize, Transform)], keep_separate: &[bool]) -> Self {
+    pub fn build(
+        meshes: &[Mesh],
+        instances: &[(usize, Transform)],
+        keep_separate: &[bool],
+    ) -> Self {
         use rayon::prelude::*;
-        let xforms: Vec<InstanceXform> = instances.iter().map(|(m, t)| InstanceXform::new(*m as u32, t)).collect();
+        let xforms: Vec<InstanceXform> = instances
+            .iter()
+            .map(|(m, t)| InstanceXform::new(*m as u32, t))
+            .collect();
         let mut uses = vec![0usize; meshes.len()];
         for (m, _) in instances {
             uses[*m] += 1;
         }
-        let merge: Vec<bool> = instances.iter().enumerate().map(|(i, (m, _))| uses[*m] == 1 && !keep_separate.get(i).copied().unwrap_or(false)).collect();
+        let merge: Vec<bool> = instances
+            .iter()
+            .enumerate()
+            .map(|(i, (m, _))| uses[*m] == 1 && !keep_separate.get(i).copied().unwrap_or(false))
+            .collect();
         // A mesh whose only instance is merged needs no BLAS of its own.
-        let needs_blas: Vec<bool> = (0..meshes.len()).map(|m| instances.iter().zip(&merge).any(|((mi, _), mg)| *mi == m && !mg)).collect();
+        let needs_blas: Vec<bool> = (0..meshes.len())
+            .map(|m| {
+                instances
+                    .iter()
+                    .zip(&merge)
+                    .any(|((mi, _), mg)| *mi == m && !mg)
+            })
+            .collect();
         let blas: Vec<Blas> = meshes
             .par_iter()
             .zip(needs_blas.par_iter())
-            .map(|(m, need)| if *need { Blas::build(m) } else { Blas::bounds_only(m) })
+            .map(|(m, need)| {
+                if *need {
+                    Blas::build(m)
+                } else {
+                    Blas::bounds_only(m)
+                }
+            })
             .collect();
         let mut world = Mesh::default();
         let mut merged_map = Vec::new();
@@ -264,9 +336,13 @@ impl Accel {
             }
             let mesh = &meshes[*m];
             let base = world.positions.len() as u32;
-            world.positions.extend(mesh.positions.iter().map(|p| xforms[i].point_to_world(*p)));
+            world
+                .positions
+                .extend(mesh.positions.iter().map(|p| xforms[i].point_to_world(*p)));
             for (k, t) in mesh.triangles.iter().enumerate() {
-                world.triangles.push([t[0] + base, t[1] + base, t[2] + base]);
+                world
+                    .triangles
+                    .push([t[0] + base, t[1] + base, t[2] + base]);
                 merged_map.push((i as u32, k as u32));
             }
         }
@@ -277,41 +353,77 @@ impl Accel {
                 transformed_bounds(x, lo, hi)
             })
             .collect();
-        let mut tlas_items: Vec<u32> = (0..instances.len() as u32).filter(|i| !merge[*i as usize]).collect();
-        let mut aabbs: Vec<Aabb> = tlas_items.iter().map(|&i| {
-            let (a, b) = instance_bounds[i as usize];
-            Aabb::new(a.into(), b.into())
-        }).collect();
+        let mut tlas_items: Vec<u32> = (0..instances.len() as u32)
+            .filter(|i| !merge[*i as usize])
+            .collect();
+        let mut aabbs: Vec<Aabb> = tlas_items
+            .iter()
+            .map(|&i| {
+                let (a, b) = instance_bounds[i as usize];
+                Aabb::new(a.into(), b.into())
+            })
+            .collect();
         let merged = if world.triangles.is_empty() {
             None
         } else {
             let b = Blas::build(&world);
             let pad = b.bounds.0.abs().max(b.bounds.1.abs()).max_element() * 1e-6;
-            aabbs.push(Aabb::new((b.bounds.0 - pad).into(), (b.bounds.1 + pad).into()));
+            aabbs.push(Aabb::new(
+                (b.bounds.0 - pad).into(),
+                (b.bounds.1 + pad).into(),
+            ));
             tlas_items.push(MERGED);
             Some(b)
         };
         let tlas = if aabbs.is_empty() {
             None
         } else {
-            Some(obvhs::cwbvh::builder::build_cwbvh(&aabbs, BvhBuildParams::medium_build(), &mut Duration::default()))
+            Some(obvhs::cwbvh::builder::build_cwbvh(
+                &aabbs,
+                BvhBuildParams::medium_build(),
+                &mut Duration::default(),
+            ))
         };
-        Self { blas, instances: xforms, tlas, tlas_items, merged, merged_map, instance_bounds }
+        Self {
+            blas,
+            instances: xforms,
+            tlas,
+            tlas_items,
+            merged,
+            merged_map,
+            instance_bounds,
+        }
     }
 
     /// Closest hit of one TLAS item (an instance or the merged BLAS) in (0, tmax), world space.
     #[inline(always)]
     pub(crate) fn item_hit(&self, item: u32, o: Vec3, d: Vec3, tmax: f32) -> Option<SceneHit> {
         if item == MERGED {
-            let h = self.merged.as_ref()?.intersect(o.into(), d.into(), 0.0, tmax)?;
+            let h = self
+                .merged
+                .as_ref()?
+                .intersect(o.into(), d.into(), 0.0, tmax)?;
             let (instance, prim) = self.merged_map[h.prim as usize];
-            return Some(SceneHit { t: h.t, instance, prim, b1: h.b1, b2: h.b2 });
+            return Some(SceneHit {
+                t: h.t,
+                instance,
+                prim,
+                b1: h.b1,
+                b2: h.b2,
+            });
         }
         let x = &self.instances[item as usize];
         let oo = x.point_to_object(o);
         let od = x.dir_to_object(d);
-        let h = self.blas[x.blas as usize].intersect(oo.into(), od.into(), 0.0, tmax * x.inv_scale)?;
-        Some(SceneHit { t: h.t * x.scale, instance: item, prim: h.prim, b1: h.b1, b2: h.b2 })
+        let h =
+            self.blas[x.blas as usize].intersect(oo.into(), od.into(), 0.0, tmax * x.inv_scale)?;
+        Some(SceneHit {
+            t: h.t * x.scale,
+            instance: item,
+            prim: h.prim,
+            b1: h.b1,
+            b2: h.b2,
+        })
     }
 
     /// Closest hit along a world ray (unit direction) with t in (0, tmax).
@@ -347,15 +459,24 @@ impl Accel {
     /// True if any geometry lies along the segment (0, tmax).
     #[inline]
     pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
-        let Some(tlas) = self.tlas.as_ref() else { return false };
+        let Some(tlas) = self.tlas.as_ref() else {
+            return false;
+        };
         let ray = BvhRay::new(o.into(), d.into(), 0.0, tmax);
         !tlas.ray_traverse_miss(ray, |r, id| {
             let item = self.tlas_items[tlas.primitive_indices[id] as usize];
             let blocked = if item == MERGED {
-                self.merged.as_ref().is_some_and(|b| b.occluded(o.into(), d.into(), 0.0, r.tmax))
+                self.merged
+                    .as_ref()
+                    .is_some_and(|b| b.occluded(o.into(), d.into(), 0.0, r.tmax))
             } else {
                 let x = &self.instances[item as usize];
-                self.blas[x.blas as usize].occluded(x.point_to_object(o).into(), x.dir_to_object(d).into(), 0.0, r.tmax * x.inv_scale)
+                self.blas[x.blas as usize].occluded(
+                    x.point_to_object(o).into(),
+                    x.dir_to_object(d).into(),
+                    0.0,
+                    r.tmax * x.inv_scale,
+                )
             };
             if blocked { 0.0 } else { f32::INFINITY }
         })
@@ -363,6 +484,9 @@ impl Accel {
 
     /// The largest coordinate magnitude in the scene: ray offsets are relative to it.
     pub fn scene_extent(&self) -> f32 {
-        self.instance_bounds.iter().map(|(a, b)| a.abs().max(b.abs()).max_element()).fold(0.0, f32::max)
+        self.instance_bounds
+            .iter()
+            .map(|(a, b)| a.abs().max(b.abs()).max_element())
+            .fold(0.0, f32::max)
     }
 }

@@ -56,7 +56,12 @@ impl Bsdf {
                 if wi.z <= 0.0 {
                     return None;
                 }
-                Some(BsdfSample { wi, weight: albedo, pdf: cosine_hemisphere_pdf(wi.z), delta: false })
+                Some(BsdfSample {
+                    wi,
+                    weight: albedo,
+                    pdf: cosine_hemisphere_pdf(wi.z),
+                    delta: false,
+                })
             }
             Bsdf::Conductor { reflectance, alpha } => {
                 if wo.z <= 0.0 {
@@ -64,7 +69,12 @@ impl Bsdf {
                 }
                 if alpha < MIN_ALPHA {
                     let wi = Vec3::new(-wo.x, -wo.y, wo.z);
-                    return Some(BsdfSample { wi, weight: reflectance, pdf: 1.0, delta: true });
+                    return Some(BsdfSample {
+                        wi,
+                        weight: reflectance,
+                        pdf: 1.0,
+                        delta: true,
+                    });
                 }
                 let m = ggx_sample_visible(wo, alpha, u);
                 let wi = reflect(wo, m);
@@ -76,20 +86,35 @@ impl Bsdf {
                     return None;
                 }
                 // f cos / pdf collapses to F * G1(wi) for visible-normal sampling.
-                Some(BsdfSample { wi, weight: reflectance * smith_g1(wi, alpha), pdf, delta: false })
+                Some(BsdfSample {
+                    wi,
+                    weight: reflectance * smith_g1(wi, alpha),
+                    pdf,
+                    delta: false,
+                })
             }
             Bsdf::Dielectric { ior } => {
                 let f = fresnel_dielectric(wo.z, ior);
                 if u_lobe < f {
                     let wi = Vec3::new(-wo.x, -wo.y, wo.z);
-                    Some(BsdfSample { wi, weight: Vec3::ONE, pdf: f, delta: true })
+                    Some(BsdfSample {
+                        wi,
+                        weight: Vec3::ONE,
+                        pdf: f,
+                        delta: true,
+                    })
                 } else {
                     let entering = wo.z > 0.0;
                     let eta = if entering { ior } else { 1.0 / ior };
                     let wi = refract(wo, eta)?;
                     // Radiance is scaled by (eta_i / eta_t)^2 across the boundary.
                     let scale = 1.0 / (eta * eta);
-                    Some(BsdfSample { wi, weight: Vec3::splat(scale), pdf: 1.0 - f, delta: true })
+                    Some(BsdfSample {
+                        wi,
+                        weight: Vec3::splat(scale),
+                        pdf: 1.0 - f,
+                        delta: true,
+                    })
                 }
             }
         }
@@ -205,7 +230,11 @@ fn ggx_reflection_pdf(wo: Vec3, wi: Vec3, m: Vec3, alpha: f32) -> f32 {
 pub fn ggx_sample_visible(wo: Vec3, alpha: f32, u: Vec2) -> Vec3 {
     let vh = Vec3::new(alpha * wo.x, alpha * wo.y, wo.z).normalize();
     let lensq = vh.x * vh.x + vh.y * vh.y;
-    let t1 = if lensq > 0.0 { Vec3::new(-vh.y, vh.x, 0.0) / lensq.sqrt() } else { Vec3::X };
+    let t1 = if lensq > 0.0 {
+        Vec3::new(-vh.y, vh.x, 0.0) / lensq.sqrt()
+    } else {
+        Vec3::X
+    };
     let t2 = vh.cross(t1);
     let r = u.x.sqrt();
     let phi = TAU * u.y;
@@ -245,21 +274,42 @@ mod tests {
             by_eval += f.x as f64 * 4.0 * std::f64::consts::PI;
             pdf_integral += pdf as f64 * 4.0 * std::f64::consts::PI;
         }
-        (by_sampling / n as f64, by_eval / n as f64, pdf_integral / n as f64)
+        (
+            by_sampling / n as f64,
+            by_eval / n as f64,
+            pdf_integral / n as f64,
+        )
     }
 
     #[test]
     fn sample_and_eval_agree() {
         for b in [
-            Bsdf::Diffuse { albedo: Vec3::splat(0.7) },
-            Bsdf::Conductor { reflectance: Vec3::ONE, alpha: 0.5 },
-            Bsdf::Conductor { reflectance: Vec3::ONE, alpha: 0.2 },
-            Bsdf::Conductor { reflectance: Vec3::ONE, alpha: 1.0 },
+            Bsdf::Diffuse {
+                albedo: Vec3::splat(0.7),
+            },
+            Bsdf::Conductor {
+                reflectance: Vec3::ONE,
+                alpha: 0.5,
+            },
+            Bsdf::Conductor {
+                reflectance: Vec3::ONE,
+                alpha: 0.2,
+            },
+            Bsdf::Conductor {
+                reflectance: Vec3::ONE,
+                alpha: 1.0,
+            },
         ] {
             for th in [0.0, 30.0, 60.0, 80.0] {
                 let (s, e, p) = albedo_two_ways(&b, dir(th), 400_000);
-                assert!((s - e).abs() < 0.02 * s.max(0.1), "{b:?} theta {th}: sampled {s} vs eval {e}");
-                assert!(p <= 1.01 && p > 0.5, "{b:?} theta {th}: pdf integrates to {p}");
+                assert!(
+                    (s - e).abs() < 0.02 * s.max(0.1),
+                    "{b:?} theta {th}: sampled {s} vs eval {e}"
+                );
+                assert!(
+                    p <= 1.01 && p > 0.5,
+                    "{b:?} theta {th}: pdf integrates to {p}"
+                );
             }
         }
     }

@@ -10,12 +10,12 @@
 //! continues from its exit.
 
 use crate::accel::{Accel, SceneHit};
+use crate::integrator::PathState;
 use crate::object_walk::{ObjectTracer, Walk};
 use crate::scene_data::SurfaceKind;
 use glam::Vec3;
 use nppp_estimator::{DecodeRepairs, EXIT_FEATURES, EstimatorSampler, Exit};
 use nppp_geom::sphere_pair::unit_sphere_chord;
-use crate::integrator::PathState;
 use nppp_geom::{BoundingSphere, Ray, SpherePair};
 use obvhs::ray::{Ray as BvhRay, RayHit};
 
@@ -33,11 +33,18 @@ pub trait BatchDecoder: Send + Sync {
 /// What answers an estimator query.
 pub enum EstimatorModel {
     /// A baked neural estimator; `decoder` overrides the CPU decoder.
-    Neural { sampler: EstimatorSampler, decoder: Option<Box<dyn BatchDecoder>> },
+    Neural {
+        sampler: EstimatorSampler,
+        decoder: Option<Box<dyn BatchDecoder>>,
+    },
     /// Ground truth: traces the object alone from the entry ray. Exact up to
     /// the interaction with other geometry inside the sphere, so it tests the
     /// integration independently of any network.
-    Oracle { mesh: usize, surface: SurfaceKind, max_internal_bounces: u32 },
+    Oracle {
+        mesh: usize,
+        surface: SurfaceKind,
+        max_internal_bounces: u32,
+    },
 }
 
 pub struct Estimator {
@@ -108,8 +115,17 @@ struct Candidate {
 impl Estimators {
     /// Closest-hit query for a path that may use estimators. `skip` is an
     /// instance the ray has just left through its estimator (ignored entirely).
-    pub fn intersect(&self, accel: &Accel, o: Vec3, d: Vec3, skip: u32, stats: &mut EstimatorStats) -> Meet {
-        let Some(tlas) = accel.tlas.as_ref() else { return Meet::Nothing };
+    pub fn intersect(
+        &self,
+        accel: &Accel,
+        o: Vec3,
+        d: Vec3,
+        skip: u32,
+        stats: &mut EstimatorStats,
+    ) -> Meet {
+        let Some(tlas) = accel.tlas.as_ref() else {
+            return Meet::Nothing;
+        };
         let ray = BvhRay::new(o.into(), d.into(), 0.0, f32::INFINITY);
         let mut hit = RayHit::none();
         let mut best: Option<SceneHit> = None;
@@ -129,7 +145,9 @@ impl Estimators {
                 if uo.length_squared() > 1.0 {
                     let od = x.dir_to_object(d);
                     let unit_ray = Ray::new(uo, od);
-                    let Some(chord) = unit_sphere_chord(&unit_ray) else { return f32::INFINITY };
+                    let Some(chord) = unit_sphere_chord(&unit_ray) else {
+                        return f32::INFINITY;
+                    };
                     if chord.t_in < 0.0 {
                         return f32::INFINITY;
                     }
@@ -145,7 +163,11 @@ impl Estimators {
                         cand = Some(Candidate {
                             t_in,
                             t_out: chord.t_out * to_world,
-                            entry: EstimatorEntry { instance: inst, ray: Ray::new(entry_p, od), pair },
+                            entry: EstimatorEntry {
+                                instance: inst,
+                                ray: Ray::new(entry_p, od),
+                                pair,
+                            },
                         });
                     }
                     // Do not shorten the ray: geometry inside the chord must still be found.
@@ -170,7 +192,9 @@ impl Estimators {
                 // Other geometry inside the chord: the order of events is
                 // ambiguous, so this one ray is traced against the real mesh.
                 stats.ambiguous += 1;
-                accel.intersect_skipping(o, d, f32::INFINITY, skip).map_or(Meet::Nothing, Meet::Surface)
+                accel
+                    .intersect_skipping(o, d, f32::INFINITY, skip)
+                    .map_or(Meet::Nothing, Meet::Surface)
             }
         }
     }
@@ -180,7 +204,9 @@ impl Estimators {
             EstimatorModel::Neural { sampler, .. } => sampler.hits(pair),
             EstimatorModel::Oracle { mesh, .. } => {
                 let o = est.sphere.from_unit_point(unit_ray.origin);
-                accel.blas[*mesh].intersect(o.into(), unit_ray.dir.into(), 0.0, f32::INFINITY).is_some()
+                accel.blas[*mesh]
+                    .intersect(o.into(), unit_ray.dir.into(), 0.0, f32::INFINITY)
+                    .is_some()
             }
         }
     }
@@ -213,7 +239,11 @@ impl EntryBatch {
         for (ei, est) in ests.list.iter().enumerate() {
             self.rows.clear();
             self.rows.extend(
-                self.entries.iter().enumerate().filter(|(_, (_, e))| ests.per_instance[e.instance as usize] == Some(ei as u32)).map(|(i, _)| i),
+                self.entries
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, (_, e))| ests.per_instance[e.instance as usize] == Some(ei as u32))
+                    .map(|(i, _)| i),
             );
             if self.rows.is_empty() {
                 continue;
@@ -237,7 +267,10 @@ impl EntryBatch {
                     self.outputs.resize(self.rows.len() * EXIT_FEATURES, 0.0);
                     match decoder {
                         Some(dec) => {
-                            if dec.decode(&self.inputs, self.rows.len(), &mut self.outputs).is_err() {
+                            if dec
+                                .decode(&self.inputs, self.rows.len(), &mut self.outputs)
+                                .is_err()
+                            {
                                 stats.decoder_fallbacks += 1;
                                 sampler.forward_batch(&self.inputs, &mut self.outputs);
                             }
@@ -247,11 +280,18 @@ impl EntryBatch {
                     let tr = &sampler.baked().transform;
                     let max_b = sampler.meta().max_internal_bounces;
                     for (k, &i) in self.rows.iter().enumerate() {
-                        let f: &[f32; EXIT_FEATURES] = self.outputs[k * EXIT_FEATURES..(k + 1) * EXIT_FEATURES].try_into().unwrap_or(&[0.0; EXIT_FEATURES]);
+                        let f: &[f32; EXIT_FEATURES] = self.outputs
+                            [k * EXIT_FEATURES..(k + 1) * EXIT_FEATURES]
+                            .try_into()
+                            .unwrap_or(&[0.0; EXIT_FEATURES]);
                         self.exits[i] = tr.decode(f, max_b, &mut stats.repairs);
                     }
                 }
-                EstimatorModel::Oracle { mesh, surface, max_internal_bounces } => {
+                EstimatorModel::Oracle {
+                    mesh,
+                    surface,
+                    max_internal_bounces,
+                } => {
                     let tracer = ObjectTracer {
                         blas: &scene.accel.blas[*mesh],
                         surface: *surface,
@@ -323,15 +363,22 @@ impl Estimators {
     /// Builds the scene's estimators; one file loaded once serves every
     /// instance that names it. Returns `None` for `Off` or when no instance
     /// has an estimator, so such renders run no estimator code.
-    pub fn load(scene: &nppp_scene::Scene, mode: EstimatorMode, min_bounces: u32) -> Result<Option<Self>, EstimatorLoadError> {
+    pub fn load(
+        scene: &nppp_scene::Scene,
+        mode: EstimatorMode,
+        min_bounces: u32,
+    ) -> Result<Option<Self>, EstimatorLoadError> {
         if mode == EstimatorMode::Off || scene.instances.iter().all(|i| i.estimator.is_none()) {
             return Ok(None);
         }
         let mut list: Vec<Estimator> = Vec::new();
-        let mut by_key: std::collections::HashMap<(std::path::PathBuf, usize, usize), u32> = Default::default();
+        let mut by_key: std::collections::HashMap<(std::path::PathBuf, usize, usize), u32> =
+            Default::default();
         let mut per_instance = vec![None; scene.instances.len()];
         for (ii, inst) in scene.instances.iter().enumerate() {
-            let Some(path) = &inst.estimator else { continue };
+            let Some(path) = &inst.estimator else {
+                continue;
+            };
             let key = (path.clone(), inst.mesh, inst.material);
             if let Some(&e) = by_key.get(&key) {
                 per_instance[ii] = Some(e);
@@ -350,8 +397,11 @@ impl Estimators {
                 _ => {
                     let baked = nppp_estimator::BakedEstimator::load(path)?;
                     let mesh_hash = nppp_scene::mesh_content_hash(mesh);
-                    let material_hash = nppp_scene::material_content_hash(&scene.materials[inst.material]);
-                    if baked.meta.mesh_hash != mesh_hash || baked.meta.material_hash != material_hash {
+                    let material_hash =
+                        nppp_scene::material_content_hash(&scene.materials[inst.material]);
+                    if baked.meta.mesh_hash != mesh_hash
+                        || baked.meta.material_hash != material_hash
+                    {
                         return Err(EstimatorLoadError::Mismatch {
                             file: path.clone(),
                             instance: ii,
@@ -367,7 +417,13 @@ impl Estimators {
                     }
                     let sphere = baked.meta.sphere;
                     let sampler = EstimatorSampler::try_new(baked)?;
-                    Estimator { model: EstimatorModel::Neural { sampler, decoder: None }, sphere }
+                    Estimator {
+                        model: EstimatorModel::Neural {
+                            sampler,
+                            decoder: None,
+                        },
+                        sphere,
+                    }
                 }
             };
             list.push(est);
@@ -375,7 +431,11 @@ impl Estimators {
             by_key.insert(key, id);
             per_instance[ii] = Some(id);
         }
-        Ok(Some(Self { list, per_instance, min_bounces }))
+        Ok(Some(Self {
+            list,
+            per_instance,
+            min_bounces,
+        }))
     }
 
     /// Bytes of estimator data shared by all instances.

@@ -23,7 +23,11 @@ pub struct Image {
 
 impl Image {
     pub fn new(width: u32, height: u32) -> Self {
-        Self { width, height, pixels: vec![[0.0; 3]; (width as usize) * (height as usize)] }
+        Self {
+            width,
+            height,
+            pixels: vec![[0.0; 3]; (width as usize) * (height as usize)],
+        }
     }
 
     pub fn get(&self, x: u32, y: u32) -> [f32; 3] {
@@ -43,23 +47,35 @@ impl Image {
 }
 
 fn temp_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
+    let mut name = path
+        .file_name()
+        .map(|n| n.to_os_string())
+        .unwrap_or_default();
     name.push(format!(".{}.tmp", std::process::id()));
     path.with_file_name(name)
 }
 
 /// Writes `bytes_fn` to a temp file next to `path`, then renames it into place.
-pub fn write_atomically(path: &Path, write: impl FnOnce(&Path) -> Result<(), String>) -> Result<(), ImageError> {
+pub fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), String>,
+) -> Result<(), ImageError> {
     if let Some(dir) = path.parent()
         && !dir.as_os_str().is_empty()
     {
-        std::fs::create_dir_all(dir).map_err(|e| ImageError::Write { path: path.into(), msg: e.to_string() })?;
+        std::fs::create_dir_all(dir).map_err(|e| ImageError::Write {
+            path: path.into(),
+            msg: e.to_string(),
+        })?;
     }
     let tmp = temp_path(path);
     let res = write(&tmp).and_then(|_| std::fs::rename(&tmp, path).map_err(|e| e.to_string()));
     if let Err(msg) = res {
         let _ = std::fs::remove_file(&tmp);
-        return Err(ImageError::Write { path: path.into(), msg });
+        return Err(ImageError::Write {
+            path: path.into(),
+            msg,
+        });
     }
     Ok(())
 }
@@ -75,7 +91,10 @@ pub fn write_exr(img: &Image, path: &Path) -> Result<(), ImageError> {
 }
 
 pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
-    let err = |e: exr::error::Error| ImageError::Read { path: path.into(), msg: e.to_string() };
+    let err = |e: exr::error::Error| ImageError::Read {
+        path: path.into(),
+        msg: e.to_string(),
+    };
     let img = exr::prelude::read_first_rgba_layer_from_file(
         path,
         |res: exr::math::Vec2<usize>, _| Image::new(res.width() as u32, res.height() as u32),
@@ -89,8 +108,16 @@ pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
 }
 
 fn srgb_encode(x: f32) -> u8 {
-    let x = if x.is_finite() { x.clamp(0.0, 1.0) } else { 0.0 };
-    let y = if x <= 0.003_130_8 { 12.92 * x } else { 1.055 * x.powf(1.0 / 2.4) - 0.055 };
+    let x = if x.is_finite() {
+        x.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let y = if x <= 0.003_130_8 {
+        12.92 * x
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    };
     (y * 255.0 + 0.5) as u8
 }
 

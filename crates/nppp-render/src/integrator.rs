@@ -12,8 +12,8 @@
 //! `depth + 1` events.
 
 use crate::accel::SceneHit;
-use crate::estimator::{EntryBatch, EstimatorStats, Meet};
 use crate::bsdf::Bsdf;
+use crate::estimator::{EntryBatch, EstimatorStats, Meet};
 use crate::scene_data::{RenderScene, SurfaceKind};
 use glam::{Vec2, Vec3};
 use nppp_geom::sampling::power_heuristic;
@@ -100,7 +100,11 @@ impl PixelSum {
             return [0.0; 3];
         }
         let n = self.valid as f64;
-        [(self.sum[0] / n) as f32, (self.sum[1] / n) as f32, (self.sum[2] / n) as f32]
+        [
+            (self.sum[0] / n) as f32,
+            (self.sum[1] / n) as f32,
+            (self.sum[2] / n) as f32,
+        ]
     }
 }
 
@@ -124,7 +128,12 @@ enum Next {
 
 impl Wavefront {
     /// Runs every path in `self.paths` to completion, adding each to its slot in `film`.
-    pub fn run(&mut self, scene: &RenderScene, settings: &IntegratorSettings, film: &mut [PixelSum]) {
+    pub fn run(
+        &mut self,
+        scene: &RenderScene,
+        settings: &IntegratorSettings,
+        film: &mut [PixelSum],
+    ) {
         while !self.paths.is_empty() {
             self.intersect(scene, settings);
             self.answer_estimators(scene, settings);
@@ -154,32 +163,52 @@ impl Wavefront {
         self.meets.clear();
         let stats = &mut self.estimator_stats;
         let m = settings.max_bounces;
-        self.meets.extend(self.paths.iter().map(|p| match &scene.estimators {
-            // A path at depth M only looks for emission: the real mesh serves (and P >= M never estimates).
-            Some(est) if p.depth >= est.min_bounces && p.depth < m => est.intersect(&scene.accel, p.origin, p.dir, p.skip_instance, stats),
-            _ => scene.accel.intersect_skipping(p.origin, p.dir, f32::INFINITY, p.skip_instance).map_or(Meet::Nothing, Meet::Surface),
+        self.meets.extend(self.paths.iter().map(|p| {
+            match &scene.estimators {
+                // A path at depth M only looks for emission: the real mesh serves (and P >= M never estimates).
+                Some(est) if p.depth >= est.min_bounces && p.depth < m => {
+                    est.intersect(&scene.accel, p.origin, p.dir, p.skip_instance, stats)
+                }
+                _ => scene
+                    .accel
+                    .intersect_skipping(p.origin, p.dir, f32::INFINITY, p.skip_instance)
+                    .map_or(Meet::Nothing, Meet::Surface),
+            }
         }));
     }
 
     /// Gathers this step's estimator entries, answers them in one batch, and
     /// moves each of those paths to its exit.
     fn answer_estimators(&mut self, scene: &RenderScene, settings: &IntegratorSettings) {
-        let Some(ests) = &scene.estimators else { return };
+        let Some(ests) = &scene.estimators else {
+            return;
+        };
         self.batch.entries.clear();
-        self.batch.entries.extend(self.meets.iter().enumerate().filter_map(|(i, m)| match m {
-            Meet::Estimator(e) => Some((i, *e)),
-            _ => None,
-        }));
+        self.batch
+            .entries
+            .extend(self.meets.iter().enumerate().filter_map(|(i, m)| match m {
+                Meet::Estimator(e) => Some((i, *e)),
+                _ => None,
+            }));
         if self.batch.entries.is_empty() {
             return;
         }
-        self.batch.answer(ests, scene, &mut self.paths, &mut self.estimator_stats);
+        self.batch
+            .answer(ests, scene, &mut self.paths, &mut self.estimator_stats);
         self.next.clear();
         self.next.resize(self.paths.len(), Next::Terminate);
         for (k, (i, entry)) in self.batch.entries.iter().enumerate() {
             let est = &ests.list[ests.per_instance[entry.instance as usize].unwrap_or(0) as usize];
             let exit = self.batch.exits[k];
-            self.next[*i] = follow_exit(scene, settings, &mut self.paths[*i], entry.instance, &est.sphere, &exit, &mut self.estimator_stats);
+            self.next[*i] = follow_exit(
+                scene,
+                settings,
+                &mut self.paths[*i],
+                entry.instance,
+                &est.sphere,
+                &exit,
+                &mut self.estimator_stats,
+            );
         }
     }
 }
@@ -221,7 +250,11 @@ fn follow_exit(
 /// Moves `p` off the surface with normal `n` to the side `dir` points to.
 #[inline]
 fn offset_point(p: Vec3, n: Vec3, dir: Vec3, eps: f32) -> Vec3 {
-    if dir.dot(n) >= 0.0 { p + n * eps } else { p - n * eps }
+    if dir.dot(n) >= 0.0 {
+        p + n * eps
+    } else {
+        p - n * eps
+    }
 }
 
 fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit: SceneHit) -> Next {
@@ -263,7 +296,8 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
             if ls.wi.dot(ng_side) > 0.0 {
                 let (f, bsdf_pdf) = bsdf.eval(wo, frame.to_local(ls.wi));
                 if f != Vec3::ZERO {
-                    let light_eps = (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL).max(scene.offset_floor);
+                    let light_eps = (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL)
+                        .max(scene.offset_floor);
                     let tmax = ls.dist - light_eps;
                     if tmax > 0.0 && !scene.accel.occluded(origin, ls.wi, tmax) {
                         let w = power_heuristic(ls.pdf, bsdf_pdf);
@@ -278,7 +312,9 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
     let u_lobe = path.rng.uniform();
     let u_dir = path.rng.uniform2();
     let u_rr = path.rng.uniform();
-    let Some((wi, bs)) = sample_scatter(&bsdf, &frame, ng, wo_world, u_lobe, u_dir) else { return Next::Terminate };
+    let Some((wi, bs)) = sample_scatter(&bsdf, &frame, ng, wo_world, u_lobe, u_dir) else {
+        return Next::Terminate;
+    };
     if bs.wi.z * wo.z < 0.0 {
         path.eta_scale /= bs.weight.x;
     }
@@ -311,7 +347,11 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
 /// glass keeps front = outside.
 #[inline]
 pub fn shading_frame(bsdf: &Bsdf, ng: Vec3, ns: Vec3, wo_world: Vec3) -> (Frame, Vec3) {
-    let (ng_side, ns_side) = if bsdf.two_sided() && wo_world.dot(ng) < 0.0 { (-ng, -ns) } else { (ng, ns) };
+    let (ng_side, ns_side) = if bsdf.two_sided() && wo_world.dot(ng) < 0.0 {
+        (-ng, -ns)
+    } else {
+        (ng, ns)
+    };
     (Frame::from_normal(ns_side), ng_side)
 }
 
@@ -321,7 +361,14 @@ pub fn shading_frame(bsdf: &Bsdf, ng: Vec3, ns: Vec3, wo_world: Vec3) -> (Frame,
 /// the path ends (absorbed, or the direction disagrees with the geometric
 /// surface: reflection must stay on wo's side, transmission must cross).
 #[inline]
-pub fn sample_scatter(bsdf: &Bsdf, frame: &Frame, ng: Vec3, wo_world: Vec3, u_lobe: f32, u_dir: Vec2) -> Option<(Vec3, crate::bsdf::BsdfSample)> {
+pub fn sample_scatter(
+    bsdf: &Bsdf,
+    frame: &Frame,
+    ng: Vec3,
+    wo_world: Vec3,
+    u_lobe: f32,
+    u_dir: Vec2,
+) -> Option<(Vec3, crate::bsdf::BsdfSample)> {
     let wo = frame.to_local(wo_world);
     let bs = bsdf.sample(wo, u_lobe, u_dir)?;
     let wi = frame.to_world(bs.wi);

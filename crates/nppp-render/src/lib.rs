@@ -4,8 +4,8 @@
 pub mod accel;
 pub mod bsdf;
 pub mod camera;
-pub mod estimator;
 pub mod datagen;
+pub mod estimator;
 pub mod image_io;
 pub mod integrator;
 pub mod lights;

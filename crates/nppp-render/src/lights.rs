@@ -43,7 +43,11 @@ impl Lights {
             total += if w.is_finite() && w > 0.0 { w } else { 0.0 };
             cdf.push(total);
         }
-        Self { triangles, cdf, total }
+        Self {
+            triangles,
+            cdf,
+            total,
+        }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -75,7 +79,10 @@ impl Lights {
             return None;
         }
         let target = u_select as f64 * self.total;
-        let i = self.cdf.partition_point(|&c| c <= target).min(self.triangles.len() - 1);
+        let i = self
+            .cdf
+            .partition_point(|&c| c <= target)
+            .min(self.triangles.len() - 1);
         let t = &self.triangles[i];
         let (b1, b2) = uniform_triangle(u);
         let point = t.v0 + t.e1 * b1 + t.e2 * b2;
@@ -91,6 +98,12 @@ impl Lights {
         if !(pdf > 0.0) || !pdf.is_finite() {
             return None;
         }
-        Some(LightSample { point, wi, dist, radiance: t.radiance, pdf })
+        Some(LightSample {
+            point,
+            wi,
+            dist,
+            radiance: t.radiance,
+            pdf,
+        })
     }
 }

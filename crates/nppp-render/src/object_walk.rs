@@ -39,7 +39,9 @@ impl ObjectTracer<'_> {
     /// Does the unit-frame ray hit the mesh at all (the mask label)?
     pub fn hits(&self, ray: &Ray) -> bool {
         let o = self.sphere.from_unit_point(ray.origin);
-        self.blas.intersect(o.into(), ray.dir.into(), 0.0, f32::INFINITY).is_some()
+        self.blas
+            .intersect(o.into(), ray.dir.into(), 0.0, f32::INFINITY)
+            .is_some()
     }
 
     /// Follows the unit-frame ray `ray` (starting on or outside the sphere)
@@ -105,6 +107,12 @@ impl ObjectTracer<'_> {
         let uo = self.sphere.to_unit_point(o);
         let t = unit_sphere_chord(&Ray::new(uo, d)).map_or(0.0, |c| c.t_out.max(0.0));
         let position = (uo + d * t).normalize_or(Vec3::Z);
-        Exit { position, direction: d, throughput, radiance, bounces }
+        Exit {
+            position,
+            direction: d,
+            throughput,
+            radiance,
+            bounces,
+        }
     }
 }

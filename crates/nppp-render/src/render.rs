@@ -40,16 +40,31 @@ impl RenderStats {
 /// Renders `scene` into a new image.
 pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats) {
     let (w, h) = (scene.camera.width, scene.camera.height);
-    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(TILE)).flat_map(|ty| (0..w.div_ceil(TILE)).map(move |tx| (tx * TILE, ty * TILE))).collect();
+    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(TILE))
+        .flat_map(|ty| (0..w.div_ceil(TILE)).map(move |tx| (tx * TILE, ty * TILE)))
+        .collect();
     let total = w as u64 * h as u64 * opts.spp as u64;
-    let bar = if opts.progress { ProgressBar::new(total) } else { ProgressBar::hidden() };
-    bar.set_draw_target(if opts.progress { ProgressDrawTarget::stderr_with_hz(4) } else { ProgressDrawTarget::hidden() });
+    let bar = if opts.progress {
+        ProgressBar::new(total)
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_draw_target(if opts.progress {
+        ProgressDrawTarget::stderr_with_hz(4)
+    } else {
+        ProgressDrawTarget::hidden()
+    });
     bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent}% {per_sec} samples ETA {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {percent}% {per_sec} samples ETA {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     bar.enable_steady_tick(Duration::from_millis(250));
-    let settings = IntegratorSettings { max_bounces: opts.max_bounces, seed: opts.seed };
+    let settings = IntegratorSettings {
+        max_bounces: opts.max_bounces,
+        seed: opts.seed,
+    };
     let start = Instant::now();
     let results: Vec<((u32, u32), Vec<PixelSum>, crate::estimator::EstimatorStats)> = tiles
         .par_iter()
@@ -72,7 +87,12 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
                             let mut rng = SampleRng::new(opts.seed, pixel, s as u64);
                             let pos = jitter(&mut rng, gx, gy);
                             let dir = scene.camera.ray_dir(pos);
-                            wf.paths.push(PathState::camera(y * tw + x, rng, scene.camera.origin, dir));
+                            wf.paths.push(PathState::camera(
+                                y * tw + x,
+                                rng,
+                                scene.camera.origin,
+                                dir,
+                            ));
                         }
                     }
                 }
@@ -97,5 +117,13 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
             dropped += p.dropped as u64;
         }
     }
-    (img, RenderStats { seconds, samples: total, dropped_samples: dropped, estimators: est })
+    (
+        img,
+        RenderStats {
+            seconds,
+            samples: total,
+            dropped_samples: dropped,
+            estimators: est,
+        },
+    )
 }

@@ -42,7 +42,13 @@ pub const OFFSET_REL: f32 = 2e-5;
 pub fn surface_of(m: &Material) -> SurfaceKind {
     match *m {
         Material::Diffuse { albedo } => SurfaceKind::Scatter(Bsdf::Diffuse { albedo }),
-        Material::Conductor { reflectance, roughness } => SurfaceKind::Scatter(Bsdf::Conductor { reflectance, alpha: roughness }),
+        Material::Conductor {
+            reflectance,
+            roughness,
+        } => SurfaceKind::Scatter(Bsdf::Conductor {
+            reflectance,
+            alpha: roughness,
+        }),
         Material::Dielectric { ior } => SurfaceKind::Scatter(Bsdf::Dielectric { ior }),
         Material::Emitter { radiance } => SurfaceKind::Emitter { radiance },
     }
@@ -50,8 +56,16 @@ pub fn surface_of(m: &Material) -> SurfaceKind {
 
 impl RenderScene {
     pub fn new(scene: &Scene) -> Self {
-        let inst: Vec<(usize, nppp_scene::Transform)> = scene.instances.iter().map(|i| (i.mesh, i.transform)).collect();
-        let keep: Vec<bool> = scene.instances.iter().map(|i| i.estimator.is_some()).collect();
+        let inst: Vec<(usize, nppp_scene::Transform)> = scene
+            .instances
+            .iter()
+            .map(|i| (i.mesh, i.transform))
+            .collect();
+        let keep: Vec<bool> = scene
+            .instances
+            .iter()
+            .map(|i| i.estimator.is_some())
+            .collect();
         let accel = Accel::build(&scene.meshes, &inst, &keep);
         let geo_normals: Vec<Vec<Vec3>> = scene
             .meshes
@@ -80,7 +94,14 @@ impl RenderScene {
                     let (v0, v1, v2) = (p(0), p(1), p(2));
                     let c = (v1 - v0).cross(v2 - v0);
                     let area = 0.5 * c.length();
-                    light_tris.push(LightTriangle { v0, e1: v1 - v0, e2: v2 - v0, normal: c.normalize_or_zero(), area, radiance });
+                    light_tris.push(LightTriangle {
+                        v0,
+                        e1: v1 - v0,
+                        e2: v2 - v0,
+                        normal: c.normalize_or_zero(),
+                        area,
+                        radiance,
+                    });
                 }
             }
             surface.push(s);
@@ -91,7 +112,11 @@ impl RenderScene {
             lights: Lights::new(light_tris),
             surface,
             light_base,
-            shading_normals: scene.meshes.iter().map(|m| m.shading_normals.clone()).collect(),
+            shading_normals: scene
+                .meshes
+                .iter()
+                .map(|m| m.shading_normals.clone())
+                .collect(),
             geo_normals,
             accel,
             offset_floor,
@@ -109,7 +134,9 @@ impl RenderScene {
             Some(n) => {
                 let [n0, n1, n2] = n[h.prim as usize];
                 let b0 = 1.0 - h.b1 - h.b2;
-                let s = x.dir_to_world(n0 * b0 + n1 * h.b1 + n2 * h.b2).normalize_or_zero();
+                let s = x
+                    .dir_to_world(n0 * b0 + n1 * h.b1 + n2 * h.b2)
+                    .normalize_or_zero();
                 // A shading normal on the far side of the surface is meaningless: fall back.
                 if s.dot(ng) > 0.0 { s } else { ng }
             }

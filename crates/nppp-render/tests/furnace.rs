@@ -9,25 +9,43 @@ use common::*;
 const SPHERE: &str = r#"{"icosphere": {"center": [0, 0, 0], "radius": 1, "subdivisions": 3}}"#;
 
 fn max_dev(img: &nppp_render::Image, target: f32) -> f32 {
-    img.pixels.iter().flat_map(|p| p.iter()).map(|v| (v - target).abs()).fold(0.0, f32::max)
+    img.pixels
+        .iter()
+        .flat_map(|p| p.iter())
+        .map(|v| (v - target).abs())
+        .fold(0.0, f32::max)
 }
 
 #[test]
 fn white_diffuse_sphere_vanishes() {
     // Convex albedo-1 object: one bounce reaches the walls, so any M >= 1 gives exactly Le on average.
-    let json = furnace_scene(r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#, 2.0, 3.0, SPHERE);
+    let json = furnace_scene(
+        r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#,
+        2.0,
+        3.0,
+        SPHERE,
+    );
     let img = render_str(&json, 64, 8, 1);
     let m = mean(&img);
     for c in m {
         assert!((c - 2.0).abs() < 0.01, "mean {m:?}");
     }
-    assert!(max_dev(&img, 2.0) < 0.4, "a pixel strays by {}", max_dev(&img, 2.0));
+    assert!(
+        max_dev(&img, 2.0) < 0.4,
+        "a pixel strays by {}",
+        max_dev(&img, 2.0)
+    );
 }
 
 #[test]
 fn half_albedo_sphere_reflects_half() {
     // The sphere's pixels should be albedo * Le; walls Le. Check image mean bounds and that it is darker.
-    let json = furnace_scene(r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#, 1.0, 3.0, SPHERE);
+    let json = furnace_scene(
+        r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#,
+        1.0,
+        3.0,
+        SPHERE,
+    );
     let img = render_str(&json, 64, 8, 2);
     // The centre pixel sees the sphere.
     let c = img.get(12, 12);
@@ -36,7 +54,12 @@ fn half_albedo_sphere_reflects_half() {
 
 #[test]
 fn mirror_conductor_with_unit_reflectance_vanishes() {
-    let json = furnace_scene(r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 0}"#, 1.0, 3.0, SPHERE);
+    let json = furnace_scene(
+        r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 0}"#,
+        1.0,
+        3.0,
+        SPHERE,
+    );
     let img = render_str(&json, 16, 8, 3);
     assert!(max_dev(&img, 1.0) < 1e-3, "dev {}", max_dev(&img, 1.0));
 }
@@ -44,7 +67,13 @@ fn mirror_conductor_with_unit_reflectance_vanishes() {
 /// Directional albedo of single-scattering GGX at normal incidence, by
 /// midpoint quadrature of the textbook formulas (independent of bsdf.rs).
 fn ggx_albedo_normal_incidence(alpha: f64) -> f64 {
-    let g1 = |z: f64| if z <= 0.0 { 0.0 } else { 2.0 / (1.0 + (1.0 + alpha * alpha * (1.0 - z * z) / (z * z)).sqrt()) };
+    let g1 = |z: f64| {
+        if z <= 0.0 {
+            0.0
+        } else {
+            2.0 / (1.0 + (1.0 + alpha * alpha * (1.0 - z * z) / (z * z)).sqrt())
+        }
+    };
     let n = 20_000;
     let mut e = 0.0;
     for i in 0..n {
@@ -66,11 +95,22 @@ fn rough_conductor_matches_its_directional_albedo() {
     // GGX loses energy, like Mitsuba's roughconductor: 31% left at alpha 1).
     let wall = r#"{"quad": [[-2.5, -2.5, 0], [2.5, -2.5, 0], [2.5, 2.5, 0], [-2.5, 2.5, 0]]}"#;
     for alpha in [0.2f64, 0.5, 1.0] {
-        let json = furnace_scene(&format!(r#"{{"type": "conductor", "reflectance": [1, 1, 1], "roughness": {alpha}}}"#), 1.0, 3.0, wall);
+        let json = furnace_scene(
+            &format!(r#"{{"type": "conductor", "reflectance": [1, 1, 1], "roughness": {alpha}}}"#),
+            1.0,
+            3.0,
+            wall,
+        );
         let img = render_str(&json, 256, 1, 4);
         let want = ggx_albedo_normal_incidence(alpha);
-        let got = (img.get(11, 11)[0] + img.get(12, 12)[0] + img.get(11, 12)[0] + img.get(12, 11)[0]) as f64 / 4.0;
-        assert!((got - want).abs() < 0.02, "alpha {alpha}: got {got}, want {want}");
+        let got =
+            (img.get(11, 11)[0] + img.get(12, 12)[0] + img.get(11, 12)[0] + img.get(12, 11)[0])
+                as f64
+                / 4.0;
+        assert!(
+            (got - want).abs() < 0.02,
+            "alpha {alpha}: got {got}, want {want}"
+        );
     }
 }
 
@@ -87,7 +127,12 @@ fn glass_sphere_conserves_energy() {
 fn camera_inside_glass_sees_outside_brighter_by_eta_squared() {
     // SCENE_FORMAT.md: a camera inside glass of ior 1.5 sees the outside 2.25 times as bright, before Fresnel.
     // A glass sphere around the camera, looking straight out at normal incidence: T = 1 - ((1.5-1)/(1.5+1))^2 = 0.96.
-    let json = furnace_scene(r#"{"type": "dielectric", "ior": 1.5}"#, 1.0, 3.0, r#"{"icosphere": {"center": [0, 0, -2.7], "radius": 0.5, "subdivisions": 5}}"#);
+    let json = furnace_scene(
+        r#"{"type": "dielectric", "ior": 1.5}"#,
+        1.0,
+        3.0,
+        r#"{"icosphere": {"center": [0, 0, -2.7], "radius": 0.5, "subdivisions": 5}}"#,
+    );
     let img = render_str(&json, 256, 1, 6);
     // Path to the walls through one interface with M = 1: 2.25 * 0.96 (transmission), reflection stays inside (no more bounces).
     let c = img.get(12, 12)[0];

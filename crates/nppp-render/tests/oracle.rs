@@ -29,11 +29,26 @@ fn room(object_mesh: &str, object_material: &str, extra: &str) -> String {
     )
 }
 
-fn render_mode(json: &str, mode: EstimatorMode, p: u32, spp: u32, m: u32, seed: u64) -> (nppp_render::Image, nppp_render::RenderStats) {
+fn render_mode(
+    json: &str,
+    mode: EstimatorMode,
+    p: u32,
+    spp: u32,
+    m: u32,
+    seed: u64,
+) -> (nppp_render::Image, nppp_render::RenderStats) {
     let scene = scene_from_str(json);
     let mut rs = RenderScene::new(&scene);
     rs.estimators = Estimators::load(&scene, mode, p).unwrap();
-    nppp_render::render(&rs, &RenderOptions { spp, max_bounces: m, seed, progress: false })
+    nppp_render::render(
+        &rs,
+        &RenderOptions {
+            spp,
+            max_bounces: m,
+            seed,
+            progress: false,
+        },
+    )
 }
 
 fn rel_diff(a: [f64; 3], b: [f64; 3]) -> f64 {
@@ -46,14 +61,31 @@ const KNOT: &str = r#"{"procedural": {"type": "torus_knot", "p": 2, "q": 3, "tub
 
 #[test]
 fn oracle_matches_path_tracing_at_every_p() {
-    let json = room(KNOT, r#"{"type": "diffuse", "albedo": [0.9, 0.8, 0.6]}"#, "");
+    let json = room(
+        KNOT,
+        r#"{"type": "diffuse", "albedo": [0.9, 0.8, 0.6]}"#,
+        "",
+    );
     let (pt, _) = render_mode(&json, EstimatorMode::Off, 0, 512, 5, 1);
     for p in [0, 1, 2] {
         let (or, st) = render_mode(&json, EstimatorMode::Oracle, p, 512, 5, 2);
-        assert!(st.estimators.entries > 1000, "P={p}: the estimator was barely used ({} entries)", st.estimators.entries);
-        assert_eq!(st.estimators.ambiguous, 0, "no geometry enters the sphere here");
+        assert!(
+            st.estimators.entries > 1000,
+            "P={p}: the estimator was barely used ({} entries)",
+            st.estimators.entries
+        );
+        assert_eq!(
+            st.estimators.ambiguous, 0,
+            "no geometry enters the sphere here"
+        );
         let d = rel_diff(or.mean(), pt.mean());
-        assert!(d < 0.015, "P={p}: image mean differs by {:.2}% (oracle {:?} vs PT {:?})", d * 100.0, or.mean(), pt.mean());
+        assert!(
+            d < 0.015,
+            "P={p}: image mean differs by {:.2}% (oracle {:?} vs PT {:?})",
+            d * 100.0,
+            or.mean(),
+            pt.mean()
+        );
         // The object's own pixels (centre of the image), where the estimator matters most.
         let centre = |img: &nppp_render::Image| {
             let mut s = 0.0f64;
@@ -65,7 +97,11 @@ fn oracle_matches_path_tracing_at_every_p() {
             s
         };
         let dc = (centre(&or) - centre(&pt)).abs() / centre(&pt);
-        assert!(dc < 0.03, "P={p}: object region differs by {:.2}%", dc * 100.0);
+        assert!(
+            dc < 0.03,
+            "P={p}: object region differs by {:.2}%",
+            dc * 100.0
+        );
     }
 }
 
@@ -87,20 +123,44 @@ fn light_seen_only_through_a_glass_object_counts_fully() {
     let (or, st) = render_mode(&json, EstimatorMode::Oracle, 0, 256, 8, 4);
     assert!(st.estimators.entries > 0);
     let d = rel_diff(or.mean(), pt.mean());
-    assert!(d < 0.02, "image mean differs by {:.2}%: oracle {:?} PT {:?}", d * 100.0, or.mean(), pt.mean());
+    assert!(
+        d < 0.02,
+        "image mean differs by {:.2}%: oracle {:?} PT {:?}",
+        d * 100.0,
+        or.mean(),
+        pt.mean()
+    );
 }
 
 #[test]
 fn scene_without_estimators_runs_no_estimator_code() {
-    let scene = nppp_scene::load_scene(&repo_root().join("tests/conformance/camera_pixel_grid.json")).unwrap();
-    assert!(Estimators::load(&scene, EstimatorMode::Neural, 0).unwrap().is_none());
-    let json = room(KNOT, r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#, "");
-    assert!(Estimators::load(&scene_from_str(&json), EstimatorMode::Off, 0).unwrap().is_none());
+    let scene =
+        nppp_scene::load_scene(&repo_root().join("tests/conformance/camera_pixel_grid.json"))
+            .unwrap();
+    assert!(
+        Estimators::load(&scene, EstimatorMode::Neural, 0)
+            .unwrap()
+            .is_none()
+    );
+    let json = room(
+        KNOT,
+        r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#,
+        "",
+    );
+    assert!(
+        Estimators::load(&scene_from_str(&json), EstimatorMode::Off, 0)
+            .unwrap()
+            .is_none()
+    );
 }
 
 #[test]
 fn p_at_least_m_never_uses_the_estimator() {
-    let json = room(KNOT, r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#, "");
+    let json = room(
+        KNOT,
+        r#"{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}"#,
+        "",
+    );
     let (_, st) = render_mode(&json, EstimatorMode::Oracle, 3, 4, 3, 1);
     assert_eq!(st.estimators.entries, 0);
 }

@@ -48,7 +48,11 @@ pub struct Transform {
 
 impl Default for Transform {
     fn default() -> Self {
-        Self { scale: 1.0, rotation: Quat::IDENTITY, translation: Vec3::ZERO }
+        Self {
+            scale: 1.0,
+            rotation: Quat::IDENTITY,
+            translation: Vec3::ZERO,
+        }
     }
 }
 
@@ -89,7 +93,12 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        Self { spp: 64, max_bounces: 5, seed: 0, estimator_min_bounces: 2 }
+        Self {
+            spp: 64,
+            max_bounces: 5,
+            seed: 0,
+            estimator_min_bounces: 2,
+        }
     }
 }
 
