@@ -29,7 +29,7 @@ all: render
 help:
 	@echo "make render   build, then render $(SCENE) to $(OUT)/ (EXR + PNG)"
 	@echo "make test     run the test suite"
-	@echo "make bench    criterion micro-benchmarks"
+	@echo "make bench    nppp bench --quick (time vs error) and criterion micro-benchmarks"
 
 build:
 	cargo build --release -p nppp-cli
@@ -65,7 +65,10 @@ render: build $(REFERENCE) | $(ESTIMATOR)
 test:
 	cargo test --workspace
 
-bench:
+# Run time against error on the benchmark scenes (see BENCHMARKS.md), then
+# the criterion micro-benchmarks.
+bench: build
+	$(NPPP) bench --quick
 	cargo bench -p nppp-benches
 
 clean:
