@@ -10,23 +10,18 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 /// A Burn backend the trainer and baker can run on.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum BackendKind {
     /// Burn's NdArray CPU backend (deprecated upstream, kept for the tests).
     Ndarray,
     /// Burn's Flex CPU backend (pure Rust); measured faster than NdArray for
     /// this model on 2 cores (see the crate README), hence the default.
+    #[default]
     Flex,
     /// Burn's wgpu backend (a GPU through Vulkan/Metal/DX12); needs this
     /// crate built with the `wgpu` cargo feature.
     Wgpu,
-}
-
-impl Default for BackendKind {
-    fn default() -> Self {
-        Self::Flex
-    }
 }
 
 impl std::fmt::Display for BackendKind {

@@ -451,29 +451,44 @@ pub fn bake_sweep(opts: &BakeOptions, resolutions: &[u32], bits: &[u8]) -> Resul
 /// A Markdown table of sweep rows (the README's).
 pub fn sweep_table(rows: &[BakeReport]) -> String {
     let mut s = String::from(
-        "| grid | bits | memory | chamfer | throughput err | throughput bias | mask acc |\n|---|---|---|---|---|---|---|\n",
+        "| grid | bits | memory | chamfer | energy | throughput RMS err | throughput bias | mask acc | bake s |\n\
+         |---|---|---|---|---|---|---|---|---|\n",
     );
-    if let Some(u) = rows.first().and_then(|r| r.unbaked) {
+    let line = |s: &mut String,
+                grid: String,
+                bits: String,
+                mem: String,
+                m: &HeldoutMetrics,
+                secs: String| {
         s.push_str(&format!(
-            "| unbaked | - | - | {:.4} | {:.2}% | {:+.2}% | {:.2}% |\n",
-            u.chamfer,
-            100.0 * u.throughput_error,
-            100.0 * u.throughput_bias,
-            100.0 * u.mask_accuracy
+            "| {grid} | {bits} | {mem} | {:.3} | {:.3} | {:.2}% | {:+.2}% | {:.2}% | {secs} |\n",
+            m.chamfer,
+            m.energy,
+            100.0 * m.throughput_rms_error,
+            100.0 * m.throughput_bias,
+            100.0 * m.mask_accuracy
         ));
+    };
+    if let Some(u) = rows.first().and_then(|r| r.unbaked) {
+        line(
+            &mut s,
+            "unbaked".into(),
+            "-".into(),
+            "-".into(),
+            &u,
+            "-".into(),
+        );
     }
     for r in rows {
         if let Some(b) = r.baked {
-            s.push_str(&format!(
-                "| {}^4 | {} | {:.2} MiB | {:.4} | {:.2}% | {:+.2}% | {:.2}% |\n",
-                r.latent_res,
-                r.bits,
-                r.memory_bytes as f64 / (1u64 << 20) as f64,
-                b.chamfer,
-                100.0 * b.throughput_error,
-                100.0 * b.throughput_bias,
-                100.0 * b.mask_accuracy
-            ));
+            line(
+                &mut s,
+                format!("{}^4", r.latent_res),
+                r.bits.to_string(),
+                format!("{:.2} MiB", r.memory_bytes as f64 / (1u64 << 20) as f64),
+                &b,
+                format!("{:.1}", r.seconds),
+            );
         }
     }
     s

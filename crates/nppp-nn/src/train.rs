@@ -74,15 +74,19 @@ pub struct TrainOptions {
     #[arg(long)]
     pub stop_after: Option<u64>,
     /// Training-time budget of this invocation in minutes (0 = none). Once
-    /// 100 steps are timed, a run that would not fit is shortened so that it
+    /// 300 steps are timed, a run that would not fit is shortened so that it
     /// still ends with its learning-rate decay (the run length then depends
     /// on the machine's speed; use 0 for bit-reproducible runs). If the
     /// budget is spent anyway, training evaluates, checkpoints and stops.
     #[arg(long, default_value_t = 60.0)]
     pub minutes: f64,
     /// Continue the checkpoint in --out.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "overwrite")]
     pub resume: bool,
+    /// Start afresh even if --out holds a checkpoint (it is deleted once the
+    /// data has been read and checked).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Input rays per step (hits, for the Chamfer term).
     #[arg(long)]
     pub batch: Option<usize>,
@@ -140,6 +144,7 @@ impl TrainOptions {
             stop_after: None,
             minutes: 60.0,
             resume: false,
+            overwrite: false,
             batch: None,
             k: None,
             mask_batch: None,
@@ -336,7 +341,7 @@ const STREAM_NOISE: u64 = 0x7015;
 const STREAM_MASK: u64 = 0x3A5C;
 
 /// Steps timed before a `--minutes` budget shortens the schedule.
-const CALIBRATION_STEPS: u64 = 100;
+const CALIBRATION_STEPS: u64 = 300;
 /// Share of the measured pace the budget plans for: evaluations,
 /// checkpoints and a busy machine take the rest.
 const TIME_SAFETY: f64 = 0.85;
@@ -366,9 +371,6 @@ pub fn train_with_data(
     data: TrainingData,
 ) -> Result<TrainReport> {
     let cfg = resolve_config(opts)?;
-    if data.heldout.is_empty() {
-        bail!("no held-out rays");
-    }
     train_on(opts, cfg, info, data)
 }
 
@@ -446,9 +448,10 @@ fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
         )?;
         cfg
     } else {
-        if checkpoint_dir(&opts.out).is_some() {
+        if checkpoint_dir(&opts.out).is_some() && !opts.overwrite {
             bail!(
-                "{} already holds a checkpoint; pass --resume to continue it, or choose another --out",
+                "{} already holds a checkpoint; pass --resume to continue it, --overwrite to \
+                 start afresh, or choose another --out",
                 opts.out.display()
             );
         }
@@ -809,6 +812,13 @@ fn train_on(
     data: TrainingData,
 ) -> Result<TrainReport> {
     let out = &opts.out;
+    if data.heldout.is_empty() {
+        bail!(
+            "no held-out rays: the data has {} rays and every {}th is held out",
+            data.train.len(),
+            cfg.holdout_every
+        );
+    }
     let device = opts.backend.device()?;
     let ad = device.clone().autodiff();
     let n_hit = data.train.hits();
@@ -856,6 +866,16 @@ fn train_on(
         prune_log(&out.join(files::LOG), state.step)?;
         (model, optim, state)
     } else {
+        for d in [
+            files::CHECKPOINT,
+            files::CHECKPOINT_OLD,
+            files::CHECKPOINT_TMP,
+        ] {
+            let d = out.join(d);
+            if d.exists() {
+                fs::remove_dir_all(&d).with_context(|| format!("removing {}", d.display()))?;
+            }
+        }
         let meta = ModelMeta::new(info.clone(), data.transform.clone(), opts.data.clone());
         write_json_atomic(
             &out.join(files::META),
@@ -929,14 +949,19 @@ fn train_on(
         }
         let ts = Instant::now();
         let batch = make_batch(&cfg, &data, &perm, state.step, spe);
-        // Fit the schedule into the time budget once the step time is known.
-        if opts.minutes > 0.0 && state.step == start_step + CALIBRATION_STEPS {
-            let per_step = t0.elapsed().as_secs_f64() / CALIBRATION_STEPS as f64;
+        // Fit the schedule into the time budget once the pace is known, and
+        // again after each evaluation (which the first estimate misses).
+        let timed = state.step - start_step;
+        if opts.minutes > 0.0
+            && timed > 0
+            && (timed == CALIBRATION_STEPS || state.step.is_multiple_of(spe as u64))
+        {
+            let per_step = t0.elapsed().as_secs_f64() / timed as f64;
             let left = opts.minutes * 60.0 - t0.elapsed().as_secs_f64();
             let fits = state.step + (TIME_SAFETY * left / per_step).max(0.0) as u64;
             if fits < total_steps {
                 let line = format!(
-                    "--minutes {}: {total_steps} steps would not fit at {:.1} ms/step; the run \
+                    "--minutes {}: {total_steps} steps do not fit at {:.1} ms/step; the run \
                      is shortened to {fits} steps (its learning-rate decay included)",
                     opts.minutes,
                     per_step * 1e3
@@ -1107,6 +1132,22 @@ pub fn load_model_dir(dir: &Path, device: &Device) -> Result<LoadedModel> {
         &fs::read_to_string(&mp).with_context(|| format!("reading {}", mp.display()))?,
     )
     .with_context(|| format!("{} is corrupt", mp.display()))?;
+    if meta.format != ModelMeta::FORMAT || meta.version != 1 {
+        bail!(
+            "{}: not an nppp model directory (format {:?} version {})",
+            mp.display(),
+            meta.format,
+            meta.version
+        );
+    }
+    if meta.input_features != INPUT_FEATURES {
+        bail!(
+            "{}: the model was trained on {} input features, this build computes {}",
+            mp.display(),
+            meta.input_features,
+            INPUT_FEATURES
+        );
+    }
     let ckpt = checkpoint_dir(dir)
         .with_context(|| format!("{} holds no checkpoint (train first)", dir.display()))?;
     let state = read_state(&ckpt)?;

@@ -3,7 +3,7 @@
 //! of baked and unbaked estimators runs.
 
 use std::fs;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use nppp_estimator::grid::node_coords;
 use nppp_estimator::{BakedEstimator, DatasetWriter};
@@ -22,7 +22,7 @@ fn tmp(name: &str) -> PathBuf {
 }
 
 /// A tiny trained model directory, trained from a real data file.
-fn trained(dir: &PathBuf) -> PathBuf {
+fn trained(dir: &Path) -> PathBuf {
     let data = dir.join("mirror.npppdata");
     let mut header = synthetic_header("mirror-ball", 8);
     header.mesh_hash = 0xDEAD_BEEF;

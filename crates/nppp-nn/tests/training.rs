@@ -2,7 +2,7 @@
 //! and it stops cleanly on a non-finite loss.
 
 use std::fs;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use nppp_nn::synthetic::SyntheticObject;
 use nppp_nn::train::files;
@@ -42,7 +42,7 @@ fn opts(out: &PathBuf) -> TrainOptions {
     o
 }
 
-fn log_rows(dir: &PathBuf) -> Vec<Vec<String>> {
+fn log_rows(dir: &Path) -> Vec<Vec<String>> {
     fs::read_to_string(dir.join(files::LOG))
         .unwrap()
         .lines()
@@ -56,23 +56,24 @@ fn tiny_run_learns_and_is_deterministic() {
     let (info, data) = mirror_data(1500, 8);
     let dir = tmp("learns");
     let mut o = opts(&dir);
-    o.epochs = Some(8);
+    o.batch = Some(64);
+    o.epochs = Some(12);
     let rep = train_with_data(&o, info.clone(), data.clone()).unwrap();
-    assert_eq!(rep.steps, 200);
+    assert_eq!(rep.steps, 300);
     let rows = log_rows(&dir);
-    assert_eq!(rows.len(), 8);
-    // Column 4 = training loss averaged over the epoch (chamfer + mask BCE).
+    assert_eq!(rows.len(), 12);
+    // Column 5: Chamfer averaged over the epoch. The mirror ball's exits are
+    // a deterministic function of the ray, so it can fall towards zero: in
+    // 300 steps it falls about 8x (18.4 -> 2.1 when this test was written).
     let first: f64 = rows[0][5].parse().unwrap();
-    let last: f64 = rows[7][5].parse().unwrap();
-    // With the cosine learning-rate decay over the last 30% of steps this
-    // 200-step run reaches about 0.55x its first-epoch Chamfer.
-    assert!(last < first / 1.5, "chamfer {first} -> {last}");
+    let last: f64 = rows[11][5].parse().unwrap();
+    assert!(last < first / 5.0, "chamfer {first} -> {last}");
     let m = rep.metrics.unwrap();
     assert!(m.mask_accuracy > 0.85, "{m:?}");
 
     // Same seed, same data: the same log, bit for bit (CPU backend).
     let dir2 = tmp("learns2");
-    train_with_data(&opts(&dir2).tap_epochs(8), info, data).unwrap();
+    train_with_data(&o.clone().with_out(&dir2), info, data).unwrap();
     let strip = |rows: Vec<Vec<String>>| -> Vec<Vec<String>> {
         // elapsed_s and seconds_per_step are wall-clock: drop them.
         rows.into_iter()
@@ -89,7 +90,7 @@ fn tiny_run_learns_and_is_deterministic() {
 }
 
 /// Every weight of a model directory's checkpoint, in a fixed order.
-fn weights(dir: &PathBuf) -> Vec<u32> {
+fn weights(dir: &Path) -> Vec<u32> {
     let m = nppp_nn::load_model_dir(dir, &BackendKind::Ndarray.device().unwrap())
         .unwrap()
         .model;
@@ -103,10 +104,15 @@ fn weights(dir: &PathBuf) -> Vec<u32> {
 
 trait Tap {
     fn tap_epochs(self, e: usize) -> Self;
+    fn with_out(self, dir: &Path) -> Self;
 }
 impl Tap for TrainOptions {
     fn tap_epochs(mut self, e: usize) -> Self {
         self.epochs = Some(e);
+        self
+    }
+    fn with_out(mut self, dir: &Path) -> Self {
+        self.out = dir.to_path_buf();
         self
     }
 }
@@ -126,6 +132,16 @@ fn resume_continues_from_the_saved_step() {
     // A second fresh run into the same directory is refused.
     let err = train_with_data(&opts(&b).tap_epochs(1), info.clone(), data.clone()).unwrap_err();
     assert!(err.to_string().contains("--resume"), "{err}");
+    // Unless asked to start afresh.
+    let mut ow = opts(&tmp("overwrite")).tap_epochs(1);
+    train_with_data(&ow, info.clone(), data.clone()).unwrap();
+    ow.overwrite = true;
+    assert_eq!(
+        train_with_data(&ow, info.clone(), data.clone())
+            .unwrap()
+            .steps_this_run,
+        25
+    );
     let mut o = opts(&b).tap_epochs(3);
     o.resume = true;
     let r2 = train_with_data(&o, info.clone(), data.clone()).unwrap();
