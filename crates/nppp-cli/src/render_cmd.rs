@@ -4,7 +4,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use nppp_render::estimator::{BatchDecoder, EstimatorMode, EstimatorModel, Estimators};
 use nppp_render::{RenderOptions, RenderScene, image_io};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -94,6 +94,35 @@ fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
     Ok(())
 }
 
+/// The output paths are checked before rendering: a typo in `--out` must not
+/// cost the render, and an EXR must not be written under a `.png` name.
+fn check_outputs(a: &RenderArgs) -> Result<()> {
+    let has_ext = |p: &Path, ext: &str| {
+        p.extension()
+            .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case(ext))
+    };
+    anyhow::ensure!(
+        has_ext(&a.out, "exr"),
+        "--out {}: the output is an OpenEXR image; name it *.exr",
+        a.out.display()
+    );
+    image_io::check_writable(&a.out).context("--out")?;
+    if let Some(p) = &a.png {
+        anyhow::ensure!(
+            has_ext(p, "png"),
+            "--png {}: the preview is a PNG image; name it *.png",
+            p.display()
+        );
+        anyhow::ensure!(
+            p != &a.out,
+            "--png and --out are the same file ({})",
+            p.display()
+        );
+        image_io::check_writable(p).context("--png")?;
+    }
+    Ok(())
+}
+
 pub fn run(a: &RenderArgs) -> Result<()> {
     let scene = nppp_scene::load_scene(&a.scene)?;
     // Read the reference first: a bad reference should fail before minutes of rendering.
@@ -101,6 +130,19 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         Some(p) => Some(image_io::read_exr(p)?),
         None => None,
     };
+    if let Some(r) = &reference
+        && (r.width, r.height) != (scene.camera.width, scene.camera.height)
+    {
+        anyhow::bail!(
+            "--reference {}: the reference is {}x{}, the scene renders {}x{}",
+            a.reference.as_deref().unwrap_or(Path::new("")).display(),
+            r.width,
+            r.height,
+            scene.camera.width,
+            scene.camera.height
+        );
+    }
+    check_outputs(a)?;
     let mut settings = scene.render;
     if let Some(s) = a.spp {
         anyhow::ensure!(s >= 1, "--spp must be at least 1");
@@ -122,7 +164,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         EstimatorChoice::Neural => EstimatorMode::Neural,
         EstimatorChoice::Oracle => EstimatorMode::Oracle,
     };
-    rs.estimators = Estimators::load(&scene, mode, settings.estimator_min_bounces)?;
+    rs.estimators = Estimators::load(&scene, mode, settings.estimator_min_bounces)
+        .with_context(|| a.scene.display().to_string())?;
     if let Some(e) = &mut rs.estimators {
         attach_decoders(e, a.decoder)?;
     }

@@ -607,8 +607,7 @@ const SCENES: &[(&str, &[&str])] = &[
 
 /// Scenes whose estimator file cannot be used: (scene, estimator file that
 /// stderr must name with its full path, what else it must say). These
-/// errors name the estimator file (and, for a mismatch, the instance), not
-/// the scene file.
+/// errors name the scene file, the instance and the estimator file.
 const ESTIMATOR_SCENES: &[(&str, &str, &[&str])] = &[
     (
         "est_missing_file.json",
@@ -667,7 +666,9 @@ fn every_scene_error_is_clean_and_names_file_and_key() {
     }
     for (name, est, needles) in ESTIMATOR_SCENES {
         let shown = file(est).display().to_string();
-        let mut all = vec![shown.as_str()];
+        // The scene file and the instance that names the estimator, too.
+        let scene = file(name).display().to_string();
+        let mut all = vec![shown.as_str(), scene.as_str(), "instances["];
         all.extend_from_slice(needles);
         render_fails(name, &file(name), &[], &all);
     }
@@ -799,6 +800,86 @@ fn unwritable_outputs_fail_cleanly() {
         .collect();
     names.sort();
     assert_eq!(names, ["plain", "taken.exr"], "temporary files left behind");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Output paths, their kinds and the reference's size are checked before
+/// rendering: each case asks for 10^9 samples per pixel, so a check made
+/// after rendering would not return, and stderr carries no render summary.
+#[test]
+fn outputs_and_reference_are_checked_before_rendering() {
+    let scene = file("ok_tiny.json");
+    let dir = scratch("before-render");
+    let out = dir.join("out.exr");
+    std::fs::write(&out, PREVIOUS).unwrap();
+    let wrong_size = dir.join("wrong-size.exr");
+    let mut img = nppp_render::Image::new(3, 2);
+    img.pixels[0] = [1.0, 2.0, 3.0];
+    nppp_render::image_io::write_exr(&img, &wrong_size).unwrap();
+    let s = |p: &Path| p.display().to_string();
+    let cases: Vec<(Vec<String>, Vec<String>)> = vec![
+        (
+            vec!["--out".into(), s(&dir.join("x.png"))],
+            vec!["x.png".into(), "name it *.exr".into()],
+        ),
+        (
+            vec!["--out".into(), s(&dir.join("noext"))],
+            vec!["noext".into(), "name it *.exr".into()],
+        ),
+        (
+            vec![
+                "--out".into(),
+                s(&out),
+                "--png".into(),
+                s(&dir.join("p.exr")),
+            ],
+            vec!["p.exr".into(), "name it *.png".into()],
+        ),
+        (
+            vec![
+                "--out".into(),
+                s(&out),
+                "--png".into(),
+                "/proc/x.png".into(),
+            ],
+            vec!["--png".into(), "/proc/x.png".into()],
+        ),
+        (
+            vec!["--out".into(), "/proc/deep/x.exr".into()],
+            vec!["--out".into(), "/proc/deep/x.exr".into()],
+        ),
+        (
+            vec![
+                "--out".into(),
+                s(&out),
+                "--reference".into(),
+                s(&wrong_size),
+            ],
+            vec!["wrong-size.exr".into(), "3x2".into()],
+        ),
+    ];
+    for (args, needles) in cases {
+        let mut all: Vec<String> = vec![
+            "render".into(),
+            s(&scene),
+            "--quiet".into(),
+            "--spp".into(),
+            "1000000000".into(),
+        ];
+        all.extend(args.iter().cloned());
+        let o = nppp(&all);
+        let needles: Vec<&str> = needles.iter().map(String::as_str).collect();
+        let what = args.join(" ");
+        assert_clean_error(&what, &o, &needles);
+        assert!(!text(&o).contains("samples/s"), "{what}: rendered first");
+    }
+    assert_eq!(std::fs::read(&out).unwrap(), PREVIOUS);
+    let mut names: Vec<String> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["out.exr", "wrong-size.exr"], "files left behind");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -35,8 +35,10 @@ pub const DEFAULT_MASK_BITS: u8 = 8;
 
 #[derive(Debug, Error)]
 pub enum EstimatorFileError {
-    #[error("{}: {source}", path.display())]
-    Io { path: PathBuf, source: std::io::Error },
+    // `err`, not `source`: the reason is part of this message, and an error
+    // chain printer (anyhow's `{:#}`) would print it a second time.
+    #[error("{}: {err}", path.display())]
+    Io { path: PathBuf, err: std::io::Error },
     #[error("{}: not an nppp estimator file (wrong magic; expected \"NPPPEST\\0\")", path.display())]
     Magic { path: PathBuf },
     #[error("{}: version {found} not supported (this build reads {ESTIMATOR_VERSION})", path.display())]
@@ -339,12 +341,12 @@ impl BakedEstimator {
 
     pub fn save(&self, path: &Path) -> Result<(), EstimatorFileError> {
         self.check().map_err(|what| EstimatorFileError::Invalid { path: path.into(), what: format!("refusing to save: {what}") })?;
-        write_atomically(path, &self.to_bytes()).map_err(|source| EstimatorFileError::Io { path: path.into(), source })
+        write_atomically(path, &self.to_bytes()).map_err(|err| EstimatorFileError::Io { path: path.into(), err })
     }
 
     pub fn load(path: &Path) -> Result<Self, EstimatorFileError> {
         // The only allocation before validation is the file itself.
-        let bytes = std::fs::read(path).map_err(|source| EstimatorFileError::Io { path: path.into(), source })?;
+        let bytes = std::fs::read(path).map_err(|err| EstimatorFileError::Io { path: path.into(), err })?;
         Self::from_bytes(&bytes, path)
     }
 

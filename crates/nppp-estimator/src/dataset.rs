@@ -91,8 +91,9 @@ impl DatasetSummary {
 
 #[derive(Debug, Error)]
 pub enum DatasetError {
-    #[error("{}: {source}", path.display())]
-    Io { path: PathBuf, source: std::io::Error },
+    // `err`, not `source`: see `EstimatorFileError::Io`.
+    #[error("{}: {err}", path.display())]
+    Io { path: PathBuf, err: std::io::Error },
     #[error("{}: not an nppp training-data file (wrong magic; expected \"NPPPDAT\\0\")", path.display())]
     Magic { path: PathBuf },
     #[error("{}: version {found} not supported (this build reads {DATASET_VERSION})", path.display())]
@@ -440,7 +441,7 @@ impl DatasetWriter {
     pub fn create_with(path: &Path, header: DatasetHeader, options: WriterOptions) -> Result<Self, DatasetError> {
         check_header(&header).map_err(|what| DatasetError::Header { path: path.into(), what })?;
         let tmp = crate::baked::temp_path(path);
-        let io = |source| DatasetError::Io { path: path.into(), source };
+        let io = |err| DatasetError::Io { path: path.into(), err };
         let mut file = BufWriter::with_capacity(1 << 20, File::create(&tmp).map_err(io)?);
         let json = header_bytes(&header);
         let mut prefix = Vec::with_capacity(20 + json.len());
@@ -538,7 +539,7 @@ impl DatasetWriter {
         h.update(&head[4..24]);
         h.update(stored);
         head[24..28].copy_from_slice(&h.finalize().to_le_bytes());
-        let io = |source| DatasetError::Io { path: self.path.clone(), source };
+        let io = |err| DatasetError::Io { path: self.path.clone(), err };
         let f = self.file.as_mut().ok_or_else(|| io(std::io::Error::other("writer already finished")))?;
         f.write_all(&head).map_err(io)?;
         f.write_all(stored).map_err(io)?;
@@ -565,7 +566,7 @@ impl DatasetWriter {
         let crc = crc32fast::hash(&tail);
         tail.extend_from_slice(&crc.to_le_bytes());
         tail.extend_from_slice(&END_MAGIC);
-        let io = |source| DatasetError::Io { path: self.path.clone(), source };
+        let io = |err| DatasetError::Io { path: self.path.clone(), err };
         let f = self.file.take().ok_or_else(|| io(std::io::Error::other("writer already finished")))?;
         let done = (|| {
             let mut f = f;
@@ -641,7 +642,7 @@ impl DatasetReader {
     /// Reads and checks the header, the trailer and the chunk index; chunk
     /// payloads are read (and checked) only when asked for.
     pub fn open(path: &Path) -> Result<Self, DatasetError> {
-        let io = |source| DatasetError::Io { path: path.into(), source };
+        let io = |err| DatasetError::Io { path: path.into(), err };
         let f = File::open(path).map_err(io)?;
         let len = f.metadata().map_err(io)?.len();
         Self::from_source(Box::new(BufReader::with_capacity(1 << 20, f)), len, path)
@@ -656,7 +657,7 @@ impl DatasetReader {
     /// Reads from `file`, which holds `len` bytes.
     pub fn from_source(mut file: Box<dyn ReadSeek>, len: u64, path: &Path) -> Result<Self, DatasetError> {
         let p = || path.to_path_buf();
-        let io = |source| DatasetError::Io { path: p(), source };
+        let io = |err| DatasetError::Io { path: p(), err };
         let mut prefix = [0u8; 16];
         let got = read_up_to(&mut file, &mut prefix).map_err(io)?;
         if prefix[..got.min(8)] != DATASET_MAGIC[..got.min(8)] {

@@ -334,10 +334,14 @@ pub enum EstimatorMode {
 
 #[derive(Debug, thiserror::Error)]
 pub enum EstimatorLoadError {
-    #[error(transparent)]
-    File(#[from] nppp_estimator::EstimatorFileError),
+    /// The file itself is unusable (its error names the file).
+    #[error("instances[{instance}].estimator: {err}")]
+    File {
+        instance: usize,
+        err: nppp_estimator::EstimatorFileError,
+    },
     #[error(
-        "{file}: instances[{instance}]: this estimator was trained for mesh \"{trained_mesh}\" (hash {trained_mesh_hash:016x}) with material \"{trained_material}\" (hash {trained_material_hash:016x}), but the instance uses mesh \"{mesh}\" (hash {mesh_hash:016x}) with material \"{material}\" (hash {material_hash:016x})"
+        "instances[{instance}].estimator: {file}: this estimator was trained for mesh \"{trained_mesh}\" (hash {trained_mesh_hash:016x}) with material \"{trained_material}\" (hash {trained_material_hash:016x}), but the instance uses mesh \"{mesh}\" (hash {mesh_hash:016x}) with material \"{material}\" (hash {material_hash:016x})"
     )]
     Mismatch {
         file: std::path::PathBuf,
@@ -395,7 +399,8 @@ impl Estimators {
                     sphere: BoundingSphere::around(&mesh.positions, SPHERE_MARGIN),
                 },
                 _ => {
-                    let baked = nppp_estimator::BakedEstimator::load(path)?;
+                    let file_err = |err| EstimatorLoadError::File { instance: ii, err };
+                    let baked = nppp_estimator::BakedEstimator::load(path).map_err(file_err)?;
                     let mesh_hash = nppp_scene::mesh_content_hash(mesh);
                     let material_hash =
                         nppp_scene::material_content_hash(&scene.materials[inst.material]);
@@ -416,7 +421,7 @@ impl Estimators {
                         });
                     }
                     let sphere = baked.meta.sphere;
-                    let sampler = EstimatorSampler::try_new(baked)?;
+                    let sampler = EstimatorSampler::try_new(baked).map_err(file_err)?;
                     Estimator {
                         model: EstimatorModel::Neural {
                             sampler,

@@ -55,6 +55,59 @@ fn temp_path(path: &Path) -> PathBuf {
     path.with_file_name(name)
 }
 
+/// Checks, before minutes of rendering, that an image can be written to
+/// `path`: it is not a folder, and the nearest existing ancestor folder
+/// accepts a new file (tried with the temporary file `write_atomically`
+/// would use, removed at once). Creates nothing that stays behind.
+pub fn check_writable(path: &Path) -> Result<(), ImageError> {
+    let err = |msg: String| ImageError::Write {
+        path: path.into(),
+        msg,
+    };
+    if path.file_name().is_none() || path.as_os_str().to_string_lossy().ends_with('/') {
+        return Err(err("names a folder, not a file".into()));
+    }
+    if path.is_dir() {
+        return Err(err("is a folder".into()));
+    }
+    let parent = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let mut dir = parent.as_path();
+    while !dir.exists() {
+        match dir.parent() {
+            Some(d) if !d.as_os_str().is_empty() => dir = d,
+            _ => {
+                dir = Path::new(".");
+                break;
+            }
+        }
+    }
+    if !dir.is_dir() {
+        return Err(err(format!(
+            "{} is not a folder, so the file cannot be created",
+            dir.display()
+        )));
+    }
+    let probe = if dir == parent.as_path() {
+        temp_path(path)
+    } else {
+        dir.join(format!(".nppp-write-check.{}.tmp", std::process::id()))
+    };
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => {
+            let _ = std::fs::remove_file(&probe);
+            Ok(())
+        }
+        Err(e) => Err(err(format!("cannot be written: {e}"))),
+    }
+}
+
 /// Writes `bytes_fn` to a temp file next to `path`, then renames it into place.
 pub fn write_atomically(
     path: &Path,

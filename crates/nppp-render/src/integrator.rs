@@ -21,6 +21,12 @@ use nppp_geom::{Frame, SampleRng};
 
 /// Russian roulette starts after this many scattering events.
 pub const RR_START_DEPTH: u32 = 3;
+/// From this many scattering events on, a path is terminated with
+/// probability at least `RR_MIN_TERMINATION` (as Mitsuba does from its
+/// rr_depth on), so that lossless paths (albedo 1, mirrors, glass) end even
+/// when `max_bounces` is huge. Unbiased; only paths this deep pay the variance.
+pub const RR_CAP_DEPTH: u32 = 64;
+pub const RR_MIN_TERMINATION: f32 = 0.05;
 
 #[derive(Clone, Copy, Debug)]
 pub struct IntegratorSettings {
@@ -328,7 +334,10 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
     path.skip_instance = crate::accel::NO_SKIP;
 
     if path.depth >= RR_START_DEPTH {
-        let q = (1.0 - (path.beta * path.eta_scale).max_element()).max(0.0);
+        let mut q = (1.0 - (path.beta * path.eta_scale).max_element()).max(0.0);
+        if path.depth >= RR_CAP_DEPTH {
+            q = q.max(RR_MIN_TERMINATION);
+        }
         if q > 0.0 {
             if u_rr < q {
                 return Next::Terminate;

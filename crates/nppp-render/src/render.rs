@@ -1,6 +1,7 @@
 //! The render driver: tiles in parallel with rayon, one wavefront per worker,
 //! a progress bar on stderr, and the statistics a user needs to trust the image.
 
+use crate::estimator::EstimatorStats;
 use crate::image_io::Image;
 use crate::integrator::{IntegratorSettings, PathState, PixelSum, Wavefront, jitter};
 use crate::scene_data::RenderScene;
@@ -38,11 +39,13 @@ impl RenderStats {
 }
 
 /// Renders `scene` into a new image.
+///
+/// The image is split into bands of `TILE` rows; each band's tiles render in
+/// parallel and their means go straight into the band, so the only
+/// full-resolution buffer is the f32 image itself (12 bytes per pixel: 3.2 GB
+/// at the largest allowed 16384 x 16384), never a full-resolution f64 film.
 pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats) {
     let (w, h) = (scene.camera.width, scene.camera.height);
-    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(TILE))
-        .flat_map(|ty| (0..w.div_ceil(TILE)).map(move |tx| (tx * TILE, ty * TILE)))
-        .collect();
     let total = w as u64 * h as u64 * opts.spp as u64;
     let bar = if opts.progress {
         ProgressBar::new(total)
@@ -66,57 +69,46 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
         seed: opts.seed,
     };
     let start = Instant::now();
-    let results: Vec<((u32, u32), Vec<PixelSum>, crate::estimator::EstimatorStats)> = tiles
-        .par_iter()
-        .map_init(Wavefront::default, |wf, &(x0, y0)| {
-            let tw = TILE.min(w - x0);
+    let mut img = Image::new(w, h);
+    let band_len = (w * TILE) as usize;
+    let (dropped, est) = img
+        .pixels
+        .par_chunks_mut(band_len)
+        .enumerate()
+        .map(|(band, band_pixels)| {
+            let y0 = band as u32 * TILE;
             let th = TILE.min(h - y0);
-            let mut film = vec![PixelSum::default(); (tw * th) as usize];
-            wf.estimator_stats = Default::default();
-            let px = (tw * th) as usize;
-            let spp_per_batch = (BATCH_PATHS / px).max(1) as u32;
-            let mut s0 = 0;
-            while s0 < opts.spp {
-                let s1 = (s0 + spp_per_batch).min(opts.spp);
-                wf.paths.clear();
-                for y in 0..th {
-                    for x in 0..tw {
-                        let (gx, gy) = (x0 + x, y0 + y);
-                        let pixel = (gy as u64) * w as u64 + gx as u64;
-                        for s in s0..s1 {
-                            let mut rng = SampleRng::new(opts.seed, pixel, s as u64);
-                            let pos = jitter(&mut rng, gx, gy);
-                            let dir = scene.camera.ray_dir(pos);
-                            wf.paths.push(PathState::camera(
-                                y * tw + x,
-                                rng,
-                                scene.camera.origin,
-                                dir,
-                            ));
-                        }
-                    }
+            let tiles: Vec<(u32, Vec<PixelSum>, EstimatorStats)> = (0..w.div_ceil(TILE))
+                .into_par_iter()
+                .map_init(Wavefront::default, |wf, tx| {
+                    let x0 = tx * TILE;
+                    let tw = TILE.min(w - x0);
+                    let film = render_tile(scene, opts, &settings, wf, (x0, y0), (tw, th), &bar);
+                    (x0, film, wf.estimator_stats)
+                })
+                .collect();
+            let mut dropped = 0u64;
+            let mut est = EstimatorStats::default();
+            for (x0, film, st) in tiles {
+                est.merge(&st);
+                let tw = TILE.min(w - x0);
+                for (i, p) in film.iter().enumerate() {
+                    let (x, y) = (x0 + i as u32 % tw, i as u32 / tw);
+                    band_pixels[(y * w + x) as usize] = p.mean();
+                    dropped += p.dropped as u64;
                 }
-                wf.run(scene, &settings, &mut film);
-                bar.inc(px as u64 * (s1 - s0) as u64);
-                s0 = s1;
             }
-            ((x0, y0), film, wf.estimator_stats)
+            (dropped, est)
         })
-        .collect();
+        .reduce(
+            || (0, EstimatorStats::default()),
+            |(da, mut ea), (db, eb)| {
+                ea.merge(&eb);
+                (da + db, ea)
+            },
+        );
     bar.finish_and_clear();
     let seconds = start.elapsed().as_secs_f64();
-    let mut img = Image::new(w, h);
-    let mut dropped = 0u64;
-    let mut est = crate::estimator::EstimatorStats::default();
-    for ((x0, y0), film, st) in results {
-        est.merge(&st);
-        let tw = TILE.min(w - x0);
-        for (i, p) in film.iter().enumerate() {
-            let (x, y) = (x0 + i as u32 % tw, y0 + i as u32 / tw);
-            img.pixels[(y * w + x) as usize] = p.mean();
-            dropped += p.dropped as u64;
-        }
-    }
     (
         img,
         RenderStats {
@@ -126,4 +118,43 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
             estimators: est,
         },
     )
+}
+
+/// All samples of one tile, in wavefront batches of about `BATCH_PATHS` paths.
+fn render_tile(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    settings: &IntegratorSettings,
+    wf: &mut Wavefront,
+    (x0, y0): (u32, u32),
+    (tw, th): (u32, u32),
+    bar: &ProgressBar,
+) -> Vec<PixelSum> {
+    let w = scene.camera.width;
+    let mut film = vec![PixelSum::default(); (tw * th) as usize];
+    wf.estimator_stats = Default::default();
+    let px = (tw * th) as usize;
+    let spp_per_batch = (BATCH_PATHS / px).max(1) as u32;
+    let mut s0 = 0;
+    while s0 < opts.spp {
+        let s1 = (s0 + spp_per_batch).min(opts.spp);
+        wf.paths.clear();
+        for y in 0..th {
+            for x in 0..tw {
+                let (gx, gy) = (x0 + x, y0 + y);
+                let pixel = (gy as u64) * w as u64 + gx as u64;
+                for s in s0..s1 {
+                    let mut rng = SampleRng::new(opts.seed, pixel, s as u64);
+                    let pos = jitter(&mut rng, gx, gy);
+                    let dir = scene.camera.ray_dir(pos);
+                    wf.paths
+                        .push(PathState::camera(y * tw + x, rng, scene.camera.origin, dir));
+                }
+            }
+        }
+        wf.run(scene, settings, &mut film);
+        bar.inc(px as u64 * (s1 - s0) as u64);
+        s0 = s1;
+    }
+    film
 }

@@ -298,8 +298,8 @@ fn albedo_zero_is_exactly_black() {
 }
 
 /// Albedo exactly 1 on a concave object (the torus knot) with many
-/// bounces: Russian roulette never terminates (q = 0), paths still end,
-/// and the object vanishes in the furnace.
+/// bounces: Russian roulette does not fire before depth 64 (q = 0), paths
+/// still end, and the object vanishes in the furnace.
 #[test]
 fn albedo_one_concave_object_vanishes() {
     let knot = r#"{"procedural": {"type": "torus_knot", "segments": 96, "sides": 12}}"#;
@@ -314,6 +314,26 @@ fn albedo_one_concave_object_vanishes() {
     assert_eq!(st.dropped_samples, 0);
     let m = luminance_mean(&img);
     assert!((m - 1.0).abs() < 0.01, "mean {m}");
+}
+
+/// `max_bounces` at u32::MAX on a lossless object: without a floor on the
+/// termination probability, Russian roulette would never end these paths
+/// (the albedo-1 knot traps them) and the render would not finish. With
+/// it, the render ends and is still the furnace's exact answer in the mean.
+#[test]
+fn unbounded_max_bounces_on_a_lossless_object_ends_and_is_unbiased() {
+    let knot = r#"{"procedural": {"type": "torus_knot", "segments": 96, "sides": 12}}"#;
+    for material in [
+        r#"{"type": "diffuse", "albedo": [1, 1, 1]}"#,
+        r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 0}"#,
+    ] {
+        let json = furnace_scene(material, 1.0, 3.0, knot);
+        let (img, st) = render_json(&json, 16, u32::MAX, 5);
+        assert_finite(&img, material);
+        assert_eq!(st.dropped_samples, 0);
+        let m = luminance_mean(&img);
+        assert!((m - 1.0).abs() < 0.02, "{material}: mean {m}");
+    }
 }
 
 #[test]
