@@ -23,7 +23,7 @@ TRAIN_FLAGS ?= --minutes 8 --epochs 12 --seed 1
 BAKE_FLAGS ?= --latent-grid 16 --mask-grid 32 --bits 8
 P ?= 2
 
-.PHONY: all build render test bench clean help data train bake
+.PHONY: all build render test test-wgpu bench clean help data train bake
 all: render
 
 help:
@@ -64,6 +64,19 @@ render: build $(REFERENCE) | $(ESTIMATOR)
 
 test:
 	cargo test --workspace
+	$(MAKE) test-wgpu
+
+# The wgpu backend (training and the batched decoder) on whatever Vulkan
+# driver is installed; on a machine without a GPU that is Mesa's lavapipe
+# (`apt install mesa-vulkan-drivers`, which .ci/run does). Skipped with a
+# note when no Vulkan driver is installed at all.
+VULKAN_ICDS := $(wildcard /usr/share/vulkan/icd.d/*.json /etc/vulkan/icd.d/*.json)
+test-wgpu:
+ifneq ($(strip $(VULKAN_ICDS))$(VK_ICD_FILENAMES)$(VK_DRIVER_FILES),)
+	cargo test -p nppp-nn --features wgpu --test wgpu
+else
+	@echo "test-wgpu: skipped, no Vulkan driver installed (apt install mesa-vulkan-drivers)"
+endif
 
 # Run time against error on the benchmark scenes (see BENCHMARKS.md), then
 # the criterion micro-benchmarks.
