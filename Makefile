@@ -77,7 +77,7 @@ test:
 VULKAN_ICDS := $(wildcard /usr/share/vulkan/icd.d/*.json /etc/vulkan/icd.d/*.json)
 test-wgpu:
 ifneq ($(strip $(VULKAN_ICDS))$(VK_ICD_FILENAMES)$(VK_DRIVER_FILES),)
-	cargo test -p nppp-nn --features wgpu --test wgpu
+	XDG_RUNTIME_DIR=$${XDG_RUNTIME_DIR:-/tmp} cargo test --profile wgpu-smoke -p nppp-nn --features wgpu --test wgpu
 else
 	@echo "test-wgpu: skipped, no Vulkan driver installed (apt install mesa-vulkan-drivers)"
 endif

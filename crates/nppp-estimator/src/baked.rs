@@ -703,6 +703,40 @@ pub(crate) mod tests {
         assert!(err_of(&b).contains("1 bytes after the last section"));
     }
 
+    // Fuzzing past the checksum: random byte edits and truncations, with
+    // the CRC then made valid again so the parser itself sees the damage.
+    // Whatever loads must also build a sampler and give finite exits.
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(3000))]
+        #[test]
+        fn checksummed_garbage_never_panics(
+            edits in proptest::collection::vec((proptest::prelude::any::<proptest::sample::Index>(), proptest::prelude::any::<u8>()), 0..6),
+            cut in proptest::prelude::any::<proptest::sample::Index>(),
+            truncate in proptest::prelude::any::<bool>(),
+            u in proptest::array::uniform4(0.0f32..1.0),
+        ) {
+            let mut b = tiny_estimator(4, 2, 8).to_bytes();
+            for (i, v) in edits {
+                let i = i.index(b.len());
+                b[i] = v;
+            }
+            if truncate {
+                b.truncate(cut.index(b.len()).max(16));
+            }
+            recrc(&mut b);
+            if let Ok(est) = BakedEstimator::from_bytes(&b, Path::new("fuzz.nppp")) {
+                if let Ok(s) = crate::EstimatorSampler::try_new(est) {
+                    let mut scratch = crate::SamplerScratch::new(&s);
+                    let mut rep = crate::DecodeRepairs::default();
+                    let r = vec![0.5f32; s.noise_dim()];
+                    let e = s.sample(&nppp_geom::SpherePair(u), &r, &mut scratch, &mut rep);
+                    proptest::prop_assert!(e.position.is_finite() && e.direction.is_finite());
+                    proptest::prop_assert!(e.throughput.is_finite() && e.radiance.is_finite());
+                }
+            }
+        }
+    }
+
     #[test]
     fn absurd_sizes_never_allocate() {
         let good = tiny_estimator(4, 2, 8).to_bytes();

@@ -86,7 +86,10 @@ fn wgpu_training_follows_ndarray() {
         let rep = train_with_data(&o, info.clone(), data.clone()).unwrap();
         assert_eq!(rep.steps, 60, "{backend}");
         let m = rep.metrics.unwrap();
-        assert!(m.chamfer.is_finite() && m.mask_accuracy > 0.5, "{backend}: {m:?}");
+        assert!(
+            m.chamfer.is_finite() && m.mask_accuracy > 0.5,
+            "{backend}: {m:?}"
+        );
         epoch_losses(&dir)
     };
     let cpu = run(BackendKind::Ndarray);
@@ -95,5 +98,10 @@ fn wgpu_training_follows_ndarray() {
     assert!(gpu[2] < gpu[0], "wgpu loss does not fall: {gpu:?}");
     // The first epoch starts from identical weights and random numbers.
     let rel = (gpu[0] - cpu[0]).abs() / cpu[0].abs();
-    assert!(rel < 1e-2, "epoch 1 loss: wgpu {} vs ndarray {}", gpu[0], cpu[0]);
+    assert!(
+        rel < 1e-2,
+        "epoch 1 loss: wgpu {} vs ndarray {}",
+        gpu[0],
+        cpu[0]
+    );
 }

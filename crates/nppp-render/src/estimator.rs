@@ -130,6 +130,7 @@ impl Estimators {
         let mut hit = RayHit::none();
         let mut best: Option<SceneHit> = None;
         let mut cand: Option<Candidate> = None;
+        let mut chords_overlap = false;
         tlas.ray_traverse(ray, &mut hit, |r, id| {
             let inst = accel.tlas_items[tlas.primitive_indices[id] as usize];
             if inst == skip {
@@ -158,11 +159,22 @@ impl Estimators {
                         return f32::INFINITY;
                     }
                     let to_world = est.sphere.radius * x.scale;
-                    let t_in = chord.t_in * to_world;
-                    if t_in < r.tmax && cand.as_ref().is_none_or(|c| t_in < c.t_in) {
+                    let (t_in, t_out) = (chord.t_in * to_world, chord.t_out * to_world);
+                    if t_in >= r.tmax {
+                        return f32::INFINITY;
+                    }
+                    if let Some(c) = &cand
+                        && t_in < c.t_out
+                        && c.t_in < t_out
+                    {
+                        // Two estimators' chords overlap: neither knows the
+                        // other's object, so the ray is traced for real.
+                        chords_overlap = true;
+                    }
+                    if cand.as_ref().is_none_or(|c| t_in < c.t_in) {
                         cand = Some(Candidate {
                             t_in,
-                            t_out: chord.t_out * to_world,
+                            t_out,
                             entry: EstimatorEntry {
                                 instance: inst,
                                 ray: Ray::new(entry_p, od),
@@ -170,8 +182,10 @@ impl Estimators {
                             },
                         });
                     }
-                    // Do not shorten the ray: geometry inside the chord must still be found.
-                    return f32::INFINITY;
+                    // Geometry inside the chord must still be found (it makes
+                    // the ray ambiguous), anything past its far end cannot
+                    // change the answer: the traversal stops there.
+                    return t_out;
                 }
             }
             match accel.item_hit(inst, o, d, r.tmax) {
@@ -182,19 +196,26 @@ impl Estimators {
                 None => f32::INFINITY,
             }
         });
+        if chords_overlap {
+            stats.ambiguous += 1;
+            return accel
+                .intersect_skipping(o, d, f32::INFINITY, skip)
+                .map_or(Meet::Nothing, Meet::Surface);
+        }
         match (cand, best) {
             (None, None) => Meet::Nothing,
             (None, Some(h)) => Meet::Surface(h),
             (Some(c), None) => Meet::Estimator(c.entry),
             (Some(c), Some(h)) if h.t < c.t_in => Meet::Surface(h),
             (Some(c), Some(h)) if h.t > c.t_out => Meet::Estimator(c.entry),
-            (Some(_), Some(_)) => {
+            (Some(c), Some(h)) => {
                 // Other geometry inside the chord: the order of events is
                 // ambiguous, so this one ray is traced against the real mesh.
+                // `h` is already the closest of everything else up to the
+                // chord's end, so the candidate's own mesh is all that is
+                // left to trace.
                 stats.ambiguous += 1;
-                accel
-                    .intersect_skipping(o, d, f32::INFINITY, skip)
-                    .map_or(Meet::Nothing, Meet::Surface)
+                Meet::Surface(accel.item_hit(c.entry.instance, o, d, h.t).unwrap_or(h))
             }
         }
     }

@@ -1,0 +1,77 @@
+//! The estimator's hot paths on the committed default estimator
+//! (`models/cornell-knot.nppp`): latent and mask grid lookups (quadrilinear,
+//! incoherent rays), and the decoder at several batch sizes, on the
+//! plain-Rust CPU decoder (row by row, and as matrix products from
+//! `GEMM_MIN_ROWS` rows) and on Burn's CPU backends.
+
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use nppp_estimator::{BakedEstimator, EXIT_FEATURES, EstimatorSampler, SamplerScratch};
+use nppp_geom::{SampleRng, SpherePair};
+use nppp_nn::BackendKind;
+use nppp_nn::decoder::BurnDecoder;
+use std::path::Path;
+
+fn sampler() -> EstimatorSampler {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/cornell-knot.nppp");
+    EstimatorSampler::new(BakedEstimator::load(&path).expect("models/cornell-knot.nppp"))
+}
+
+fn random_pairs(n: usize) -> Vec<SpherePair> {
+    let mut rng = SampleRng::from_seed(3);
+    (0..n)
+        .map(|_| SpherePair([rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()]))
+        .collect()
+}
+
+fn grids(c: &mut Criterion) {
+    let s = sampler();
+    let pairs = random_pairs(4096);
+    let mut g = c.benchmark_group("estimator_grid_lookup");
+    g.throughput(Throughput::Elements(pairs.len() as u64));
+    g.bench_function("latent_32^4x16_4bit", |b| {
+        let mut z = vec![0.0f32; s.latent_dim()];
+        b.iter(|| {
+            let mut acc = 0.0;
+            for p in &pairs {
+                s.latent(p, &mut z);
+                acc += z[0];
+            }
+            acc
+        })
+    });
+    g.bench_function("mask_64^4_4bit", |b| {
+        b.iter(|| pairs.iter().filter(|p| s.hits(p)).count())
+    });
+    g.finish();
+}
+
+fn decoder(c: &mut Criterion) {
+    let s = sampler();
+    let n = s.latent_dim() + s.noise_dim();
+    let mut rng = SampleRng::from_seed(4);
+    let mut g = c.benchmark_group("estimator_decoder");
+    for rows in [1usize, 64, 1024] {
+        let input: Vec<f32> = (0..rows * n).map(|_| rng.normal()).collect();
+        let mut out = vec![0.0f32; rows * EXIT_FEATURES];
+        g.throughput(Throughput::Elements(rows as u64));
+        g.bench_with_input(BenchmarkId::new("cpu_row_by_row", rows), &rows, |b, _| {
+            let mut scratch = SamplerScratch::new(&s);
+            b.iter(|| s.forward_batch_with(&input, &mut out, &mut scratch))
+        });
+        g.bench_with_input(BenchmarkId::new("cpu_batched", rows), &rows, |b, _| {
+            b.iter(|| s.forward_batch(&input, &mut out))
+        });
+        for backend in [BackendKind::Ndarray, BackendKind::Flex] {
+            let dec = BurnDecoder::new(&s.baked().decoder, backend).expect("burn decoder");
+            g.bench_with_input(
+                BenchmarkId::new(format!("burn_{backend}"), rows),
+                &rows,
+                |b, _| b.iter(|| dec.forward(&input, rows, &mut out).expect("forward")),
+            );
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, grids, decoder);
+criterion_main!(benches);
