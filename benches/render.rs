@@ -11,7 +11,11 @@ use rayon::prelude::*;
 
 const RAYS: usize = 1 << 16;
 
-fn rays(rs: &RenderScene) -> (Vec<(Vec3, Vec3)>, Vec<(Vec3, Vec3)>, Vec<(Vec3, Vec3, f32)>) {
+/// Rays as (origin, direction); shadow rays also carry their length.
+type Rays = Vec<(Vec3, Vec3)>;
+type ShadowRays = Vec<(Vec3, Vec3, f32)>;
+
+fn rays(rs: &RenderScene) -> (Rays, Rays, ShadowRays) {
     let mut rng = SampleRng::from_seed(1);
     let (w, h) = (rs.camera.width as f32, rs.camera.height as f32);
     let primary: Vec<(Vec3, Vec3)> = (0..RAYS)

@@ -104,8 +104,8 @@ impl ExitTransform {
 
     pub fn encode(&self, e: &Exit) -> [f32; EXIT_FEATURES] {
         let mut f = Self::raw_features(e);
-        for i in 0..EXIT_FEATURES {
-            f[i] = (f[i] - self.mean[i]) / self.std[i];
+        for ((v, m), s) in f.iter_mut().zip(&self.mean).zip(&self.std) {
+            *v = (*v - m) / s;
         }
         f
     }

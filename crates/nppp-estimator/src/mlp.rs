@@ -64,13 +64,13 @@ impl Mlp {
         let (mut cur, mut next) = (a, b);
         let last = self.layers.len() - 1;
         for (li, l) in self.layers.iter().enumerate() {
-            for o in 0..l.outputs {
-                let row = &l.weight[o * l.inputs..(o + 1) * l.inputs];
-                let mut acc = l.bias[o];
+            let rows = l.weight.chunks_exact(l.inputs);
+            for ((n, row), &bias) in next[..l.outputs].iter_mut().zip(rows).zip(&l.bias) {
+                let mut acc = bias;
                 for (wi, xi) in row.iter().zip(&cur[..l.inputs]) {
                     acc += wi * xi;
                 }
-                next[o] = if li < last { acc.max(0.0) } else { acc };
+                *n = if li < last { acc.max(0.0) } else { acc };
             }
             std::mem::swap(&mut cur, &mut next);
         }

@@ -87,7 +87,7 @@ pub fn unit_sphere_chord(ray: &Ray) -> Option<Chord> {
     // Closest point of the line to the centre, then the half chord from it.
     let closest = ray.origin - ray.dir * b;
     let h2 = 1.0 - closest.length_squared();
-    if !(h2 >= 0.0) {
+    if h2.is_nan() || h2 < 0.0 {
         return None;
     }
     let h = h2.sqrt();
@@ -157,7 +157,7 @@ impl SpherePair {
         let b = self.exit();
         let d = b - a;
         let len = d.length();
-        if !(len > 1e-6) {
+        if len.is_nan() || len <= 1e-6 {
             return None;
         }
         Some(Ray::new(a, d / len))

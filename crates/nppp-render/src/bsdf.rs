@@ -82,7 +82,7 @@ impl Bsdf {
                     return None;
                 }
                 let pdf = ggx_reflection_pdf(wo, wi, m, alpha);
-                if !(pdf > 0.0) || !pdf.is_finite() {
+                if pdf.is_nan() || pdf <= 0.0 || !pdf.is_finite() {
                     return None;
                 }
                 // f cos / pdf collapses to F * G1(wi) for visible-normal sampling.

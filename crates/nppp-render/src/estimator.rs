@@ -31,6 +31,9 @@ pub trait BatchDecoder: Send + Sync {
 }
 
 /// What answers an estimator query.
+// A scene holds a handful of these (one per estimator file), so the size of
+// the neural variant costs nothing worth a box.
+#[allow(clippy::large_enum_variant)]
 pub enum EstimatorModel {
     /// A baked neural estimator; `decoder` overrides the CPU decoder.
     Neural {
@@ -388,6 +391,8 @@ impl Estimators {
     /// Builds the scene's estimators; one file loaded once serves every
     /// instance that names it. Returns `None` for `Off` or when no instance
     /// has an estimator, so such renders run no estimator code.
+    // Loading runs once per render; a large error value is no cost.
+    #[allow(clippy::result_large_err)]
     pub fn load(
         scene: &nppp_scene::Scene,
         mode: EstimatorMode,

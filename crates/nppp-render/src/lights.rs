@@ -88,14 +88,14 @@ impl Lights {
         let point = t.v0 + t.e1 * b1 + t.e2 * b2;
         let d = point - p;
         let dist2 = d.length_squared();
-        if !(dist2 > 0.0) {
+        if dist2.is_nan() || dist2 <= 0.0 {
             return None;
         }
         let dist = dist2.sqrt();
         let wi = d / dist;
         let cos_light = -wi.dot(t.normal);
         let pdf = self.pdf_solid_angle(i, dist, cos_light);
-        if !(pdf > 0.0) || !pdf.is_finite() {
+        if pdf.is_nan() || pdf <= 0.0 || !pdf.is_finite() {
             return None;
         }
         Some(LightSample {
