@@ -70,6 +70,11 @@ pub struct BenchArgs {
     /// Re-render the references even if cached ones match.
     #[arg(long)]
     pub fresh_reference: bool,
+    /// Render nothing: redraw the time-vs-error plots of an earlier run
+    /// from its results.csv into --out (for runs made on a machine without
+    /// a TrueType font).
+    #[arg(long, value_name = "RESULTS_CSV")]
+    pub plot_csv: Option<PathBuf>,
 }
 
 struct Plan {
@@ -227,6 +232,9 @@ struct SceneResult {
 }
 
 pub fn run(a: &BenchArgs) -> Result<()> {
+    if let Some(csv) = &a.plot_csv {
+        return plot_from_csv(csv, &a.out);
+    }
     let plan = Plan::from_args(a)?;
     let names: Vec<String> = a
         .scenes
@@ -1433,6 +1441,132 @@ struct Curve {
     color: plotters::style::RGBColor,
     width: u32,
     points: Vec<(f64, f64)>,
+}
+
+/// `--plot-csv`: one plot per scene of a results.csv, each configuration's
+/// (seconds, relMSE) averaged over seeds at each spp, as `curves` draws them.
+fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
+    use plotters::prelude::{BitMapBackend, IntoDrawingArea, SVGBackend};
+    use plotters::style::RGBColor;
+    use std::collections::BTreeMap;
+    let text =
+        std::fs::read_to_string(csv).with_context(|| format!("reading {}", csv.display()))?;
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines
+        .next()
+        .with_context(|| format!("{}: empty file", csv.display()))?
+        .split(',')
+        .collect();
+    let col = |name: &str| {
+        header
+            .iter()
+            .position(|h| *h == name)
+            .with_context(|| format!("{}: no column {name:?}", csv.display()))
+    };
+    let (c_scene, c_config, c_kind, c_m, c_p, c_spp, c_w, c_h, c_s, c_e) = (
+        col("scene")?,
+        col("config")?,
+        col("kind")?,
+        col("max_bounces")?,
+        col("min_bounces")?,
+        col("spp")?,
+        col("width")?,
+        col("height")?,
+        col("seconds")?,
+        col("rel_mse")?,
+    );
+    // scene -> (size, config -> (kind, m, p, spp -> (sum s, sum e, n)))
+    type Cells = BTreeMap<u32, (f64, f64, u32)>;
+    let mut scenes: BTreeMap<
+        String,
+        (
+            (String, String),
+            BTreeMap<String, (String, u32, u32, Cells)>,
+        ),
+    > = BTreeMap::new();
+    for (i, line) in lines.enumerate() {
+        let f: Vec<&str> = line.split(',').collect();
+        let bad = || format!("{}:{}: malformed row", csv.display(), i + 2);
+        ensure!(f.len() == header.len(), "{}", bad());
+        let num = |c: usize| f[c].parse::<f64>().with_context(bad);
+        let (secs, err) = (num(c_s)?, num(c_e)?);
+        let spp = f[c_spp].parse::<u32>().with_context(bad)?;
+        let entry = scenes
+            .entry(f[c_scene].to_string())
+            .or_insert_with(|| ((f[c_w].to_string(), f[c_h].to_string()), BTreeMap::new()));
+        let cfg = entry.1.entry(f[c_config].to_string()).or_insert_with(|| {
+            (
+                f[c_kind].to_string(),
+                f[c_m].parse().unwrap_or(0),
+                f[c_p].parse().unwrap_or(0),
+                BTreeMap::new(),
+            )
+        });
+        let cell = cfg.3.entry(spp).or_insert((0.0, 0.0, 0));
+        *cell = (cell.0 + secs, cell.1 + err, cell.2 + 1);
+    }
+    ensure!(!scenes.is_empty(), "{}: no rows", csv.display());
+    register_font().map_err(|e| anyhow::anyhow!(e))?;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let nppp_colors = [
+        RGBColor(214, 39, 40),
+        RGBColor(255, 127, 14),
+        RGBColor(31, 119, 180),
+        RGBColor(44, 160, 44),
+    ];
+    for (name, ((w, h), configs)) in &scenes {
+        let mmax = configs
+            .values()
+            .filter(|c| c.0 == "pt")
+            .map(|c| c.1)
+            .max()
+            .unwrap_or(1);
+        let curves: Vec<Curve> = configs
+            .iter()
+            .map(|(label, (kind, m, p, cells))| {
+                let (color, width) = match kind.as_str() {
+                    "pt" if *m == mmax => (RGBColor(0, 0, 0), 3),
+                    "pt" => {
+                        let g =
+                            (200.0 - 150.0 * (*m as f64 - 1.0) / (mmax.max(2) as f64 - 1.0)) as u8;
+                        (RGBColor(g, g, g), 1)
+                    }
+                    "nppp" => (nppp_colors[(*p as usize).min(3)], 2),
+                    _ => (RGBColor(148, 103, 189), 1),
+                };
+                let mut points: Vec<(f64, f64)> = cells
+                    .values()
+                    .map(|&(s, e, n)| (s / n as f64, e / n as f64))
+                    .filter(|&(s, e)| s > 0.0 && e > 0.0)
+                    .collect();
+                points.sort_by(|a, b| a.0.total_cmp(&b.0));
+                Curve {
+                    label: label.clone(),
+                    color,
+                    width,
+                    points,
+                }
+            })
+            .filter(|c| !c.points.is_empty())
+            .collect();
+        let title = format!("{name}: time vs relMSE ({w}x{h})");
+        let svg = out.join(format!("{name}.svg"));
+        draw(
+            SVGBackend::new(&svg, (900, 640)).into_drawing_area(),
+            &title,
+            &curves,
+        )
+        .with_context(|| format!("writing {}", svg.display()))?;
+        let png = out.join(format!("{name}.png"));
+        draw(
+            BitMapBackend::new(&png, (900, 640)).into_drawing_area(),
+            &title,
+            &curves,
+        )
+        .with_context(|| format!("writing {}", png.display()))?;
+        eprintln!("{}, {}", svg.display(), png.display());
+    }
+    Ok(())
 }
 
 fn curves(r: &SceneResult) -> Vec<Curve> {
