@@ -1394,3 +1394,40 @@ fn regenerate_binary_fixtures() {
     write_estimators();
     write_datasets();
 }
+
+/// `nppp bench --plot-csv` on files that are not a bench's results.csv.
+#[test]
+fn plot_csv_errors_name_the_file() {
+    let dir = scratch("plot-csv");
+    let cases: [(&str, &str, &str); 4] = [
+        ("empty.csv", "", "empty file"),
+        ("no-columns.csv", "a,b,c\n1,2,3\n", "no column \"scene\""),
+        (
+            "short-row.csv",
+            "scene,config,kind,max_bounces,min_bounces,spp,seed,width,height,seconds,rel_mse\ncb,PT M=5,pt,5,,4\n",
+            "malformed row",
+        ),
+        (
+            "nan-row.csv",
+            "scene,config,kind,max_bounces,min_bounces,spp,seed,width,height,seconds,rel_mse\ncb,PT M=5,pt,5,,4,1,8,8,fast,0.1\n",
+            "malformed row",
+        ),
+    ];
+    for (name, body, needle) in cases {
+        let p = dir.join(name);
+        std::fs::write(&p, body).unwrap();
+        let o = nppp([
+            "bench".as_ref(),
+            "--plot-csv".as_ref(),
+            p.as_os_str(),
+            "--out".as_ref(),
+            dir.join("plots").as_os_str(),
+        ]);
+        assert_clean_error(name, &o, &[&p.display().to_string(), needle]);
+    }
+    assert!(
+        !dir.join("plots").exists(),
+        "plots folder created for bad input"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
