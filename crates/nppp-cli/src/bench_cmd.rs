@@ -1477,13 +1477,8 @@ fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
     );
     // scene -> (size, config -> (kind, m, p, spp -> (sum s, sum e, n)))
     type Cells = BTreeMap<u32, (f64, f64, u32)>;
-    let mut scenes: BTreeMap<
-        String,
-        (
-            (String, String),
-            BTreeMap<String, (String, u32, u32, Cells)>,
-        ),
-    > = BTreeMap::new();
+    type Configs = BTreeMap<String, (String, u32, u32, Cells)>;
+    let mut scenes: BTreeMap<String, ((String, String), Configs)> = BTreeMap::new();
     for (i, line) in lines.enumerate() {
         let f: Vec<&str> = line.split(',').collect();
         let bad = || format!("{}:{}: malformed row", csv.display(), i + 2);
