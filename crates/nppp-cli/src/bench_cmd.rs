@@ -127,6 +127,23 @@ enum Kind {
     Oracle,
 }
 
+impl Kind {
+    /// The `kind` column of results.csv.
+    fn name(self) -> &'static str {
+        match self {
+            Kind::Pt => "pt",
+            Kind::Nppp => "nppp",
+            Kind::Oracle => "oracle",
+        }
+    }
+
+    fn from_name(s: &str) -> Option<Self> {
+        [Kind::Pt, Kind::Nppp, Kind::Oracle]
+            .into_iter()
+            .find(|k| k.name() == s)
+    }
+}
+
 #[derive(Clone, Debug)]
 struct Config {
     kind: Kind,
@@ -701,20 +718,11 @@ fn flip_mean(img: &Image, reference: &Image) -> Option<f64> {
         return None;
     }
     fn srgb8(img: &Image) -> nv_flip::FlipImageRgb8 {
-        let enc = |x: f32| {
-            let x = if x.is_finite() {
-                x.clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            let y = if x <= 0.003_130_8 {
-                12.92 * x
-            } else {
-                1.055 * x.powf(1.0 / 2.4) - 0.055
-            };
-            (y * 255.0 + 0.5) as u8
-        };
-        let data: Vec<u8> = img.pixels.iter().flat_map(|p| p.map(enc)).collect();
+        let data: Vec<u8> = img
+            .pixels
+            .iter()
+            .flat_map(|p| p.map(image_io::srgb_encode))
+            .collect();
         nv_flip::FlipImageRgb8::with_data(img.width, img.height, &data)
     }
     let map = nv_flip::flip(
@@ -1400,11 +1408,7 @@ fn report_csv(results: &[SceneResult]) -> String {
                 "{},{},{},{},{},{},{},{},{},{:.6},{},{:.1},{:.6e},{:.6e},{:.6e},{:.6e},{},{:.6},{},{},{},{}",
                 r.name,
                 c.label(),
-                match c.kind {
-                    Kind::Pt => "pt",
-                    Kind::Nppp => "nppp",
-                    Kind::Oracle => "oracle",
-                },
+                c.kind.name(),
                 c.m,
                 if c.kind == Kind::Pt {
                     String::new()
@@ -1447,7 +1451,6 @@ struct Curve {
 /// (seconds, relMSE) averaged over seeds at each spp, as `curves` draws them.
 fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
     use plotters::prelude::{BitMapBackend, IntoDrawingArea, SVGBackend};
-    use plotters::style::RGBColor;
     use std::collections::BTreeMap;
     let text =
         std::fs::read_to_string(csv).with_context(|| format!("reading {}", csv.display()))?;
@@ -1477,7 +1480,7 @@ fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
     );
     // scene -> (size, config -> (kind, m, p, spp -> (sum s, sum e, n)))
     type Cells = BTreeMap<u32, (f64, f64, u32)>;
-    type Configs = BTreeMap<String, (String, u32, u32, Cells)>;
+    type Configs = BTreeMap<String, (Kind, u32, u32, Cells)>;
     let mut scenes: BTreeMap<String, ((String, String), Configs)> = BTreeMap::new();
     for (i, line) in lines.enumerate() {
         let f: Vec<&str> = line.split(',').collect();
@@ -1489,9 +1492,10 @@ fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
         let entry = scenes
             .entry(f[c_scene].to_string())
             .or_insert_with(|| ((f[c_w].to_string(), f[c_h].to_string()), BTreeMap::new()));
+        let kind = Kind::from_name(f[c_kind]).with_context(bad)?;
         let cfg = entry.1.entry(f[c_config].to_string()).or_insert_with(|| {
             (
-                f[c_kind].to_string(),
+                kind,
                 f[c_m].parse().unwrap_or(0),
                 f[c_p].parse().unwrap_or(0),
                 BTreeMap::new(),
@@ -1503,32 +1507,17 @@ fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
     ensure!(!scenes.is_empty(), "{}: no rows", csv.display());
     register_font().map_err(|e| anyhow::anyhow!(e))?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let nppp_colors = [
-        RGBColor(214, 39, 40),
-        RGBColor(255, 127, 14),
-        RGBColor(31, 119, 180),
-        RGBColor(44, 160, 44),
-    ];
     for (name, ((w, h), configs)) in &scenes {
         let mmax = configs
             .values()
-            .filter(|c| c.0 == "pt")
+            .filter(|c| c.0 == Kind::Pt)
             .map(|c| c.1)
             .max()
             .unwrap_or(1);
         let curves: Vec<Curve> = configs
             .iter()
             .map(|(label, (kind, m, p, cells))| {
-                let (color, width) = match kind.as_str() {
-                    "pt" if *m == mmax => (RGBColor(0, 0, 0), 3),
-                    "pt" => {
-                        let g =
-                            (200.0 - 150.0 * (*m as f64 - 1.0) / (mmax.max(2) as f64 - 1.0)) as u8;
-                        (RGBColor(g, g, g), 1)
-                    }
-                    "nppp" => (nppp_colors[(*p as usize).min(3)], 2),
-                    _ => (RGBColor(148, 103, 189), 1),
-                };
+                let (color, width) = curve_style(*kind, *m, *p, mmax);
                 let mut points: Vec<(f64, f64)> = cells
                     .values()
                     .map(|&(s, e, n)| (s / n as f64, e / n as f64))
@@ -1564,8 +1553,29 @@ fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
     Ok(())
 }
 
-fn curves(r: &SceneResult) -> Vec<Curve> {
+/// Colour and line width of a configuration's curve: PT M = max in thick
+/// black, smaller M in lighter greys, NPPP one colour per P, the oracle purple.
+fn curve_style(kind: Kind, m: u32, p: u32, mmax: u32) -> (plotters::style::RGBColor, u32) {
     use plotters::style::RGBColor;
+    const NPPP_COLORS: [RGBColor; 4] = [
+        RGBColor(214, 39, 40),
+        RGBColor(255, 127, 14),
+        RGBColor(31, 119, 180),
+        RGBColor(44, 160, 44),
+    ];
+    match kind {
+        Kind::Pt if m == mmax => (RGBColor(0, 0, 0), 3),
+        Kind::Pt => {
+            // Lighter grey for smaller M.
+            let g = (200.0 - 150.0 * (m as f64 - 1.0) / (mmax.max(2) as f64 - 1.0)) as u8;
+            (RGBColor(g, g, g), 1)
+        }
+        Kind::Nppp => (NPPP_COLORS[(p as usize).min(3)], 2),
+        Kind::Oracle => (RGBColor(148, 103, 189), 1),
+    }
+}
+
+fn curves(r: &SceneResult) -> Vec<Curve> {
     let ladder: Vec<u32> = {
         let mut v: Vec<u32> = r.measurements.iter().map(|m| m.spp).collect();
         v.sort_unstable();
@@ -1579,26 +1589,11 @@ fn curves(r: &SceneResult) -> Vec<Curve> {
         .map(|c| c.m)
         .max()
         .unwrap_or(1);
-    let nppp_colors = [
-        RGBColor(214, 39, 40),
-        RGBColor(255, 127, 14),
-        RGBColor(31, 119, 180),
-        RGBColor(44, 160, 44),
-    ];
     r.configs
         .iter()
         .enumerate()
         .map(|(ci, c)| {
-            let (color, width) = match c.kind {
-                Kind::Pt if c.m == mmax => (RGBColor(0, 0, 0), 3),
-                Kind::Pt => {
-                    // Lighter grey for smaller M.
-                    let g = (200.0 - 150.0 * (c.m as f64 - 1.0) / (mmax.max(2) as f64 - 1.0)) as u8;
-                    (RGBColor(g, g, g), 1)
-                }
-                Kind::Nppp => (nppp_colors[(c.p as usize).min(3)], 2),
-                Kind::Oracle => (RGBColor(148, 103, 189), 1),
-            };
+            let (color, width) = curve_style(c.kind, c.m, c.p, mmax);
             let mut points: Vec<(f64, f64)> = cells(r, ci, &ladder)
                 .iter()
                 .filter(|x| x.seconds > 0.0 && x.rel_mse > 0.0)

@@ -55,6 +55,16 @@ fn text(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
+/// The names in `dir`, sorted: what a failed run must have left there.
+fn names_in(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
 /// Exit status 1 (not a panic's 101, not success) and every needle on stderr.
 fn assert_clean_error(what: &str, o: &Output, needles: &[&str]) {
     let err = text(o);
@@ -93,10 +103,7 @@ fn render_fails(case: &str, scene: &Path, extra: &[&str], needles: &[&str]) {
         PREVIOUS,
         "{case}: the existing output was modified"
     );
-    let names: Vec<String> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
+    let names = names_in(&dir);
     assert_eq!(names, ["out.exr"], "{case}: files left behind");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -794,11 +801,7 @@ fn unwritable_outputs_fail_cleanly() {
     }
     assert!(dir.join("taken.exr").is_dir());
     assert_eq!(std::fs::read(dir.join("plain")).unwrap(), PREVIOUS);
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    names.sort();
+    let names = names_in(&dir);
     assert_eq!(names, ["plain", "taken.exr"], "temporary files left behind");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -874,11 +877,7 @@ fn outputs_and_reference_are_checked_before_rendering() {
         assert!(!text(&o).contains("samples/s"), "{what}: rendered first");
     }
     assert_eq!(std::fs::read(&out).unwrap(), PREVIOUS);
-    let mut names: Vec<String> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    names.sort();
+    let names = names_in(&dir);
     assert_eq!(names, ["out.exr", "wrong-size.exr"], "files left behind");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -910,10 +909,7 @@ fn interrupted_render_keeps_the_previous_output() {
     child.kill().unwrap();
     child.wait().unwrap();
     assert_eq!(std::fs::read(&out).unwrap(), PREVIOUS);
-    let names: Vec<String> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
+    let names = names_in(&dir);
     assert_eq!(names, ["out.exr"]);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -956,10 +952,7 @@ fn valid_scenes_render_finite_images() {
             "{name}: non-finite pixel"
         );
         assert!(img.mean().iter().sum::<f64>() > 0.0, "{name}: black image");
-        let names: Vec<String> = std::fs::read_dir(&dir)
-            .unwrap()
-            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-            .collect();
+        let names = names_in(&dir);
         assert_eq!(names, ["out.exr"], "{name}: files left behind");
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -1,6 +1,8 @@
 //! Training on synthetic data: it learns, it is reproducible, it resumes,
 //! and it stops cleanly on a non-finite loss.
 
+mod common;
+
 use std::fs;
 use std::path::{Path, PathBuf};
 
@@ -26,20 +28,8 @@ fn mirror_data(n: usize, k: usize) -> (DatasetInfo, TrainingData) {
 }
 
 /// A small, fast configuration on NdArray.
-fn opts(out: &PathBuf) -> TrainOptions {
-    let mut o = TrainOptions::new("synthetic", out);
-    o.backend = BackendKind::Ndarray;
-    o.quiet = true;
-    o.batch = Some(16);
-    o.k = Some(8);
-    o.mask_batch = Some(64);
-    o.encoder_width = Some(64);
-    o.decoder_width = Some(32);
-    o.eval_rays = Some(32);
-    o.steps_per_epoch = Some(25);
-    o.seed = Some(5);
-    o.minutes = 0.0;
-    o
+fn opts(out: &Path) -> TrainOptions {
+    common::small_opts(out)
 }
 
 fn log_rows(dir: &Path) -> Vec<Vec<String>> {

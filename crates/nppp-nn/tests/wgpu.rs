@@ -5,6 +5,8 @@
 //! `cargo test -p nppp-nn --features wgpu --test wgpu` (`make test-wgpu`).
 #![cfg(feature = "wgpu")]
 
+mod common;
+
 use std::fs;
 use std::path::{Path, PathBuf};
 
@@ -13,7 +15,7 @@ use nppp_geom::SampleRng;
 use nppp_nn::decoder::BurnDecoder;
 use nppp_nn::synthetic::SyntheticObject;
 use nppp_nn::train::files;
-use nppp_nn::{BackendKind, TrainOptions, TrainingData, synthetic_header, train_with_data};
+use nppp_nn::{BackendKind, TrainingData, synthetic_header, train_with_data};
 
 fn tmp(name: &str) -> PathBuf {
     let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("nppp-nn-wgpu-{name}"));
@@ -70,19 +72,10 @@ fn wgpu_training_follows_ndarray() {
     let info = synthetic_header("mirror", 8);
     let run = |backend: BackendKind| {
         let dir = tmp(&backend.to_string());
-        let mut o = TrainOptions::new("synthetic", &dir);
+        let mut o = common::small_opts(&dir);
         o.backend = backend;
-        o.quiet = true;
-        o.batch = Some(16);
-        o.k = Some(8);
-        o.mask_batch = Some(64);
-        o.encoder_width = Some(64);
-        o.decoder_width = Some(32);
-        o.eval_rays = Some(32);
         o.steps_per_epoch = Some(20);
         o.epochs = Some(3);
-        o.seed = Some(5);
-        o.minutes = 0.0;
         let rep = train_with_data(&o, info.clone(), data.clone()).unwrap();
         assert_eq!(rep.steps, 60, "{backend}");
         let m = rep.metrics.unwrap();

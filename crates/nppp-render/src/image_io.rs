@@ -160,7 +160,9 @@ pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
     Ok(img.layer_data.channel_data.pixels)
 }
 
-fn srgb_encode(x: f32) -> u8 {
+/// Linear radiance to an 8-bit sRGB code, clamped to [0, 1] (non-finite
+/// values to 0): the PNG previews' encoding, also what FLIP compares.
+pub fn srgb_encode(x: f32) -> u8 {
     let x = if x.is_finite() {
         x.clamp(0.0, 1.0)
     } else {
