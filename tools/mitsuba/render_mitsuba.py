@@ -111,7 +111,7 @@ def make_mesh(mi, inst):
     return mesh
 
 
-def scene_dict(mi, scene, spp, max_bounces, seed):
+def scene_dict(mi, scene, spp, max_bounces, seed, rr_depth=None):
     cam = scene.camera
     # Mitsuba clips camera rays to [near_clip, far_clip] (defaults 1e-2 and 1e4, absolute units);
     # the contract has no clipping, so size both from the scene.
@@ -120,7 +120,8 @@ def scene_dict(mi, scene, spp, max_bounces, seed):
                  for i in scene.instances] + [dist])
     d = {
         "type": "scene",
-        "integrator": {"type": "path", "max_depth": int(max_bounces) + 1, "hide_emitters": False},
+        "integrator": {"type": "path", "max_depth": int(max_bounces) + 1, "hide_emitters": False,
+                       **({} if rr_depth is None else {"rr_depth": int(rr_depth)})},
         "sensor": {
             "type": "perspective",
             "fov_axis": "y",
@@ -143,14 +144,14 @@ def scene_dict(mi, scene, spp, max_bounces, seed):
 
 
 def render(scene, variant="scalar_rgb", spp=None, max_bounces=None, seed=None, threads=None,
-           timing=False, log=print):
+           timing=False, log=print, rr_depth=None):
     """Render a parsed scene; returns (image HxWx3 float32 numpy, info dict)."""
     spp = scene.render["spp"] if spp is None else spp
     max_bounces = scene.render["max_bounces"] if max_bounces is None else max_bounces
     seed = scene.render["seed"] if seed is None else seed
     mi, dr = setup_mitsuba(variant, threads)
     t0 = time.perf_counter()
-    mscene = mi.load_dict(scene_dict(mi, scene, spp, max_bounces, seed))
+    mscene = mi.load_dict(scene_dict(mi, scene, spp, max_bounces, seed, rr_depth))
     t_load = time.perf_counter() - t0
     t_warm = 0.0
     if timing and variant.startswith("llvm"):
@@ -168,7 +169,8 @@ def render(scene, variant="scalar_rgb", spp=None, max_bounces=None, seed=None, t
     arr = np.array(img, dtype=np.float32)
     info = {
         "variant": variant, "spp": spp, "max_bounces": max_bounces, "max_depth": max_bounces + 1,
-        "seed": seed, "threads": dr.thread_count(), "load_s": t_load, "warmup_s": t_warm,
+        "seed": seed, "rr_depth": 5 if rr_depth is None else rr_depth,
+        "threads": dr.thread_count(), "load_s": t_load, "warmup_s": t_warm,
         "render_s": t_render, "render_cpu_s": c_render,
         "samples_per_s": scene.camera.width * scene.camera.height * spp / t_render,
         "mi": mi,
@@ -189,6 +191,9 @@ def main(argv=None):
                          "Mitsuba max_depth = M + 1")
     ap.add_argument("--seed", type=int, help="sampler seed (default: scene render.seed, else 0)")
     ap.add_argument("--threads", type=int, help="CPU threads (default: all cores)")
+    ap.add_argument("--rr-depth", type=int,
+                    help="Russian roulette from this many scattering events on (Mitsuba's "
+                         "rr_depth, default 5); nppp starts at 3, so 3 matches its work per sample")
     ap.add_argument("--time", action="store_true",
                     help="print samples/s of the render alone (scene load and JIT warm-up excluded)")
     ap.add_argument("--mesh-obj", action="append", default=[], metavar="NAME=FILE.obj",
@@ -215,7 +220,8 @@ def main(argv=None):
         scene = load_scene(a.scene, mesh_obj)
         for name, path in mesh_obj.items():
             print(f"note: meshes.{name} rendered from {path} (--mesh-obj)")
-        arr, info = render(scene, a.variant, a.spp, a.max_bounces, a.seed, a.threads, a.time)
+        arr, info = render(scene, a.variant, a.spp, a.max_bounces, a.seed, a.threads, a.time,
+                           rr_depth=a.rr_depth)
     except SceneError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

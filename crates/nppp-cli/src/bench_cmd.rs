@@ -159,6 +159,14 @@ impl Config {
             Kind::Oracle => format!("oracle P={}", self.p),
         }
     }
+    /// The scene layout this configuration renders: merged for PT,
+    /// estimator instances kept apart otherwise.
+    fn scene<'a>(&self, pt: &'a RenderScene, with_estimators: &'a RenderScene) -> &'a RenderScene {
+        match self.kind {
+            Kind::Pt => pt,
+            Kind::Nppp | Kind::Oracle => with_estimators,
+        }
+    }
     fn slug(&self) -> String {
         match self.kind {
             Kind::Pt => format!("pt-m{}", self.m),
@@ -426,8 +434,11 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     let m = a.max_bounces;
 
     let t_build = Instant::now();
-    let mut rs = RenderScene::new(&scene);
+    // Plain path tracing gets its fastest layout (estimator instances merged
+    // into the world BLAS); estimator runs get theirs.
+    let rs = RenderScene::new(&scene);
     let build_seconds = t_build.elapsed().as_secs_f64();
+    let mut rs_est = RenderScene::for_estimators(&scene);
     let triangles_unique: u64 = scene.meshes.iter().map(|m| m.triangles.len() as u64).sum();
     let triangles_instanced: u64 = scene
         .instances
@@ -527,9 +538,9 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
 
     // Warm-up (caches, thread pool, first touch of the estimator grids), untimed.
     for c in &configs {
-        attach(&mut rs, c, &mut neural, &mut oracle);
-        let _ = render_with(&rs, 1, c.m, 0);
-        detach(&mut rs, c, &mut neural, &mut oracle);
+        attach(&mut rs_est, c, &mut neural, &mut oracle);
+        let _ = render_with(c.scene(&rs, &rs_est), 1, c.m, 0);
+        detach(&mut rs_est, c, &mut neural, &mut oracle);
     }
 
     let mut measurements = Vec::new();
@@ -537,10 +548,11 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     for seed in 1..=plan.seeds as u64 {
         for &spp in &plan.ladder {
             for (ci, c) in configs.iter().enumerate() {
-                let estimator_bytes = attach(&mut rs, c, &mut neural, &mut oracle);
-                let (img, mut stats) = render_with(&rs, spp, c.m, seed);
-                stats.seconds = robust_seconds(&rs, spp, c.m, seed, stats.seconds);
-                detach(&mut rs, c, &mut neural, &mut oracle);
+                let estimator_bytes = attach(&mut rs_est, c, &mut neural, &mut oracle);
+                let rs_c = c.scene(&rs, &rs_est);
+                let (img, mut stats) = render_with(rs_c, spp, c.m, seed);
+                stats.seconds = robust_seconds(rs_c, spp, c.m, seed, stats.seconds);
+                detach(&mut rs_est, c, &mut neural, &mut oracle);
                 let errors = metrics::compare(&img, &reference)
                     .with_context(|| format!("{name}: comparing {} to the reference", c.label()))?;
                 let flip = flip_mean(&img, &reference);

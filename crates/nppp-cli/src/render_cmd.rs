@@ -158,11 +158,15 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         settings.estimator_min_bounces = p;
     }
     let t0 = std::time::Instant::now();
-    let mut rs = RenderScene::new(&scene);
     let mode = match a.estimators {
         EstimatorChoice::Off => EstimatorMode::Off,
         EstimatorChoice::Neural => EstimatorMode::Neural,
         EstimatorChoice::Oracle => EstimatorMode::Oracle,
+    };
+    let mut rs = if matches!(mode, EstimatorMode::Off) {
+        RenderScene::new(&scene)
+    } else {
+        RenderScene::for_estimators(&scene)
     };
     rs.estimators = Estimators::load(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;

@@ -1,62 +1,20 @@
-//! Ray queries against the scene: a bottom-level BVH per mesh (obvhs' CWBVH)
-//! and a top-level BVH over instances with rigid transforms and uniform scale.
+//! Ray queries against the scene: a bottom-level BVH per mesh (crate::bvh4)
+//! and a top-level BVH (obvhs' CWBVH) over instances with rigid transforms and uniform scale.
 //!
 //! Instances only reference their mesh's BLAS, so a mesh instanced thousands
 //! of times is stored once. Rays are moved into object space per instance;
 //! because scale is uniform and directions stay unit, a world-space distance
 //! is the object-space distance times the scale.
 
+use crate::bvh4::{InstanceBvh, MeshBvh, Visit};
 use glam::{Quat, Vec3, Vec3A};
 use nppp_scene::{Mesh, Transform};
-use obvhs::{
-    BvhBuildParams, aabb::Aabb, cwbvh::CwBvh, ray::Ray as BvhRay, ray::RayHit, triangle::Triangle,
-};
-use std::time::Duration;
+use obvhs::triangle::Triangle;
 
-/// A triangle stored for intersection: a vertex and two edges, full precision.
-#[derive(Clone, Copy, Debug)]
-struct TriEdges {
-    v0: Vec3A,
-    e1: Vec3A,
-    e2: Vec3A,
-}
-
-impl TriEdges {
-    /// Möller-Trumbore; returns (t, b1, b2) or None. Degenerate triangles
-    /// (zero determinant) never hit.
-    #[inline(always)]
-    fn intersect(&self, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<(f32, f32, f32)> {
-        let p = d.cross(self.e2);
-        let det = self.e1.dot(p);
-        if det == 0.0 || !det.is_finite() {
-            return None;
-        }
-        let inv = 1.0 / det;
-        let s = o - self.v0;
-        let b1 = s.dot(p) * inv;
-        if !(0.0..=1.0).contains(&b1) {
-            return None;
-        }
-        let q = s.cross(self.e1);
-        let b2 = d.dot(q) * inv;
-        if b2 < 0.0 || b1 + b2 > 1.0 {
-            return None;
-        }
-        let t = self.e2.dot(q) * inv;
-        if t > tmin && t < tmax {
-            Some((t, b1, b2))
-        } else {
-            None
-        }
-    }
-}
-
-/// The bottom level: one mesh's triangles in BVH leaf order.
+/// The bottom level: one mesh's triangles in a 4-wide BVH.
 pub struct Blas {
-    bvh: Option<CwBvh>,
-    tris: Vec<TriEdges>,
-    /// Original triangle index of each stored triangle.
-    prim_index: Vec<u32>,
+    bvh: MeshBvh,
+    triangles: usize,
     pub bounds: (Vec3, Vec3),
 }
 
@@ -102,91 +60,41 @@ impl Blas {
                 v2: mesh.positions[t[2] as usize].into(),
             })
             .collect();
-        let (lo, hi) = hit_bounds(mesh);
-        if tris.is_empty() {
-            return Self {
-                bvh: None,
-                tris: vec![],
-                prim_index: vec![],
-                bounds: (Vec3::ZERO, Vec3::ZERO),
-            };
-        }
-        let bvh = obvhs::cwbvh::builder::build_cwbvh_from_tris(
-            &tris,
-            BvhBuildParams::medium_build(),
-            &mut Duration::default(),
-        );
-        // Reorder once so leaves index triangles directly (no indirection per test).
-        let prim_index: Vec<u32> = bvh.primitive_indices.clone();
-        let stored = prim_index
-            .iter()
-            .map(|&i| {
-                let t = &tris[i as usize];
-                TriEdges {
-                    v0: t.v0,
-                    e1: t.v1 - t.v0,
-                    e2: t.v2 - t.v0,
-                }
-            })
-            .collect();
         Self {
-            bvh: Some(bvh),
-            tris: stored,
-            prim_index,
-            bounds: (lo, hi),
+            bvh: MeshBvh::build(&tris),
+            triangles: tris.len(),
+            bounds: hit_bounds(mesh),
         }
     }
 
     /// A mesh that only lives in the merged BLAS: its bounds, no BVH.
     pub fn bounds_only(mesh: &Mesh) -> Self {
         Self {
-            bvh: None,
-            tris: vec![],
-            prim_index: vec![],
+            bvh: MeshBvh::build(&[]),
+            triangles: 0,
             bounds: hit_bounds(mesh),
         }
     }
 
     pub fn triangle_count(&self) -> usize {
-        self.tris.len()
+        self.triangles
     }
 
     /// Closest hit along an object-space ray with unit direction, in (tmin, tmax).
     #[inline]
     pub fn intersect(&self, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> Option<ObjectHit> {
-        let bvh = self.bvh.as_ref()?;
-        let ray = BvhRay::new(o, d, tmin, tmax);
-        let mut hit = RayHit::none();
-        let mut best: Option<ObjectHit> = None;
-        bvh.ray_traverse(ray, &mut hit, |r, id| {
-            match self.tris[id].intersect(r.origin, r.direction, r.tmin, r.tmax) {
-                Some((t, b1, b2)) => {
-                    best = Some(ObjectHit {
-                        t,
-                        prim: self.prim_index[id],
-                        b1,
-                        b2,
-                    });
-                    t
-                }
-                None => f32::INFINITY,
-            }
-        });
-        best
+        self.bvh.intersect(o, d, tmin, tmax).map(|h| ObjectHit {
+            t: h.t,
+            prim: h.prim,
+            b1: h.b1,
+            b2: h.b2,
+        })
     }
 
     /// True if anything lies in (tmin, tmax); stops at the first hit.
     #[inline]
     pub fn occluded(&self, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
-        let Some(bvh) = self.bvh.as_ref() else {
-            return false;
-        };
-        let ray = BvhRay::new(o, d, tmin, tmax);
-        !bvh.ray_traverse_miss(ray, |r, id| {
-            self.tris[id]
-                .intersect(r.origin, r.direction, r.tmin, r.tmax)
-                .map_or(f32::INFINITY, |h| h.0)
-        })
+        self.bvh.occluded(o, d, tmin, tmax)
     }
 }
 
@@ -240,8 +148,6 @@ pub struct SceneHit {
     pub b2: f32,
 }
 
-/// TLAS item standing for the merged world-space BLAS.
-pub const MERGED: u32 = u32::MAX;
 /// "Skip no instance" for [`Accel::intersect_skipping`].
 pub const NO_SKIP: u32 = u32::MAX - 1;
 
@@ -250,14 +156,20 @@ pub const NO_SKIP: u32 = u32::MAX - 1;
 /// Instances whose mesh is used only once (walls, a single hero object) are
 /// merged into one world-space BLAS: one traversal instead of one per
 /// overlapping instance box, and no transform per ray. Meshes used several
-/// times, and instances that must stay separate (estimators), are instanced.
+/// times, and instances that must stay separate (estimators), are instanced
+/// under the TLAS. The merged BLAS sits beside the TLAS, not under it: a ray
+/// traverses it first and then the TLAS up to its hit, so a scene with
+/// nothing instanced (the common case) pays no TLAS traversal at all.
 pub struct Accel {
     pub blas: Vec<Blas>,
     /// Every instance of the scene, merged or not (normals and lights use them).
     pub instances: Vec<InstanceXform>,
-    pub(crate) tlas: Option<CwBvh>,
-    /// Per TLAS primitive: an instance index, or [`MERGED`].
+    /// Over the instanced (unmerged) instances' world boxes; empty if none.
+    pub(crate) tlas: InstanceBvh,
+    /// Per TLAS item: its instance (never a merged one).
     pub(crate) tlas_items: Vec<u32>,
+    /// Per instance: lives in the merged world BLAS.
+    merged_flags: Vec<bool>,
     merged: Option<Blas>,
     /// Per merged triangle: (instance, triangle of its mesh).
     merged_map: Vec<(u32, u32)>,
@@ -353,65 +265,47 @@ impl Accel {
                 transformed_bounds(x, lo, hi)
             })
             .collect();
-        let mut tlas_items: Vec<u32> = (0..instances.len() as u32)
+        let tlas_items: Vec<u32> = (0..instances.len() as u32)
             .filter(|i| !merge[*i as usize])
             .collect();
-        let mut aabbs: Vec<Aabb> = tlas_items
+        let boxes: Vec<(Vec3, Vec3)> = tlas_items
             .iter()
-            .map(|&i| {
-                let (a, b) = instance_bounds[i as usize];
-                Aabb::new(a.into(), b.into())
-            })
+            .map(|&i| instance_bounds[i as usize])
             .collect();
-        let merged = if world.triangles.is_empty() {
-            None
-        } else {
-            let b = Blas::build(&world);
-            let pad = b.bounds.0.abs().max(b.bounds.1.abs()).max_element() * 1e-6;
-            aabbs.push(Aabb::new(
-                (b.bounds.0 - pad).into(),
-                (b.bounds.1 + pad).into(),
-            ));
-            tlas_items.push(MERGED);
-            Some(b)
-        };
-        let tlas = if aabbs.is_empty() {
-            None
-        } else {
-            Some(obvhs::cwbvh::builder::build_cwbvh(
-                &aabbs,
-                BvhBuildParams::medium_build(),
-                &mut Duration::default(),
-            ))
-        };
+        let merged = (!world.triangles.is_empty()).then(|| Blas::build(&world));
+        let tlas = InstanceBvh::build(&boxes);
         Self {
             blas,
             instances: xforms,
             tlas,
             tlas_items,
+            merged_flags: merge,
             merged,
             merged_map,
             instance_bounds,
         }
     }
 
-    /// Closest hit of one TLAS item (an instance or the merged BLAS) in (0, tmax), world space.
+    /// Closest hit in the merged world-space BLAS in (0, tmax).
+    #[inline(always)]
+    pub(crate) fn merged_hit(&self, o: Vec3, d: Vec3, tmax: f32) -> Option<SceneHit> {
+        let h = self
+            .merged
+            .as_ref()?
+            .intersect(o.into(), d.into(), 0.0, tmax)?;
+        let (instance, prim) = self.merged_map[h.prim as usize];
+        Some(SceneHit {
+            t: h.t,
+            instance,
+            prim,
+            b1: h.b1,
+            b2: h.b2,
+        })
+    }
+
+    /// Closest hit of one instanced (TLAS) instance in (0, tmax), world space.
     #[inline(always)]
     pub(crate) fn item_hit(&self, item: u32, o: Vec3, d: Vec3, tmax: f32) -> Option<SceneHit> {
-        if item == MERGED {
-            let h = self
-                .merged
-                .as_ref()?
-                .intersect(o.into(), d.into(), 0.0, tmax)?;
-            let (instance, prim) = self.merged_map[h.prim as usize];
-            return Some(SceneHit {
-                t: h.t,
-                instance,
-                prim,
-                b1: h.b1,
-                b2: h.b2,
-            });
-        }
         let x = &self.instances[item as usize];
         let oo = x.point_to_object(o);
         let od = x.dir_to_object(d);
@@ -436,50 +330,55 @@ impl Accel {
     /// left through its estimator; such instances are never merged).
     #[inline]
     pub fn intersect_skipping(&self, o: Vec3, d: Vec3, tmax: f32, skip: u32) -> Option<SceneHit> {
-        let tlas = self.tlas.as_ref()?;
-        let ray = BvhRay::new(o.into(), d.into(), 0.0, tmax);
-        let mut hit = RayHit::none();
-        let mut best: Option<SceneHit> = None;
-        tlas.ray_traverse(ray, &mut hit, |r, id| {
-            let item = self.tlas_items[tlas.primitive_indices[id] as usize];
-            if item == skip {
-                return f32::INFINITY;
-            }
-            match self.item_hit(item, o, d, r.tmax) {
-                Some(h) => {
+        let mut best = self.merged_hit(o, d, tmax);
+        let tmax = best.map_or(tmax, |h| h.t);
+        self.tlas
+            .traverse(o.into(), d.into(), tmax, true, |item, tmax| {
+                let instance = self.tlas_items[item as usize];
+                if instance != skip
+                    && let Some(h) = self.item_hit(instance, o, d, *tmax)
+                {
                     best = Some(h);
-                    h.t
+                    *tmax = h.t;
                 }
-                None => f32::INFINITY,
-            }
-        });
+                Visit::Continue
+            });
         best
     }
 
     /// True if any geometry lies along the segment (0, tmax).
     #[inline]
     pub fn occluded(&self, o: Vec3, d: Vec3, tmax: f32) -> bool {
-        let Some(tlas) = self.tlas.as_ref() else {
-            return false;
-        };
-        let ray = BvhRay::new(o.into(), d.into(), 0.0, tmax);
-        !tlas.ray_traverse_miss(ray, |r, id| {
-            let item = self.tlas_items[tlas.primitive_indices[id] as usize];
-            let blocked = if item == MERGED {
-                self.merged
-                    .as_ref()
-                    .is_some_and(|b| b.occluded(o.into(), d.into(), 0.0, r.tmax))
-            } else {
-                let x = &self.instances[item as usize];
-                self.blas[x.blas as usize].occluded(
+        if self
+            .merged
+            .as_ref()
+            .is_some_and(|b| b.occluded(o.into(), d.into(), 0.0, tmax))
+        {
+            return true;
+        }
+        let mut blocked = false;
+        self.tlas
+            .traverse(o.into(), d.into(), tmax, false, |item, tmax| {
+                let x = &self.instances[self.tlas_items[item as usize] as usize];
+                blocked = self.blas[x.blas as usize].occluded(
                     x.point_to_object(o).into(),
                     x.dir_to_object(d).into(),
                     0.0,
-                    r.tmax * x.inv_scale,
-                )
-            };
-            if blocked { 0.0 } else { f32::INFINITY }
-        })
+                    *tmax * x.inv_scale,
+                );
+                if blocked {
+                    Visit::Stop
+                } else {
+                    Visit::Continue
+                }
+            });
+        blocked
+    }
+
+    /// Whether instance `i` was merged into the world BLAS (and so cannot be
+    /// stood in for by an estimator).
+    pub fn is_merged(&self, i: usize) -> bool {
+        self.merged_flags.get(i).copied().unwrap_or(false)
     }
 
     /// The largest coordinate magnitude in the scene: ray offsets are relative to it.

@@ -10,6 +10,7 @@
 //! continues from its exit.
 
 use crate::accel::{Accel, SceneHit};
+use crate::bvh4::Visit;
 use crate::integrator::PathState;
 use crate::object_walk::{ObjectTracer, Walk};
 use crate::scene_data::SurfaceKind;
@@ -17,7 +18,6 @@ use glam::Vec3;
 use nppp_estimator::{DecodeRepairs, EXIT_FEATURES, EstimatorSampler, Exit};
 use nppp_geom::sphere_pair::unit_sphere_chord;
 use nppp_geom::{BoundingSphere, Ray, SpherePair};
-use obvhs::ray::{Ray as BvhRay, RayHit};
 
 /// Runs a decoder on many rows at once. The renderer calls it once per
 /// wavefront step, so a GPU or Burn implementation amortizes its overhead;
@@ -126,22 +126,18 @@ impl Estimators {
         skip: u32,
         stats: &mut EstimatorStats,
     ) -> Meet {
-        let Some(tlas) = accel.tlas.as_ref() else {
-            return Meet::Nothing;
-        };
-        let ray = BvhRay::new(o.into(), d.into(), 0.0, f32::INFINITY);
-        let mut hit = RayHit::none();
-        let mut best: Option<SceneHit> = None;
+        // Estimator instances are never merged: the merged world BLAS only
+        // sets how far the TLAS has to look.
+        let mut best: Option<SceneHit> = accel.merged_hit(o, d, f32::INFINITY);
+        let tmax = best.map_or(f32::INFINITY, |h| h.t);
         let mut cand: Option<Candidate> = None;
         let mut chords_overlap = false;
-        tlas.ray_traverse(ray, &mut hit, |r, id| {
-            let inst = accel.tlas_items[tlas.primitive_indices[id] as usize];
+        // Per instance: the distance the search may shrink to (INFINITY: no change).
+        let mut visit = |inst: u32, tmax: f32| -> f32 {
             if inst == skip {
                 return f32::INFINITY;
             }
-            if inst != crate::accel::MERGED
-                && let Some(ei) = self.per_instance[inst as usize]
-            {
+            if let Some(ei) = self.per_instance[inst as usize] {
                 let x = &accel.instances[inst as usize];
                 let est = &self.list[ei as usize];
                 let uo = est.sphere.to_unit_point(x.point_to_object(o));
@@ -163,7 +159,7 @@ impl Estimators {
                     }
                     let to_world = est.sphere.radius * x.scale;
                     let (t_in, t_out) = (chord.t_in * to_world, chord.t_out * to_world);
-                    if t_in >= r.tmax {
+                    if t_in >= tmax {
                         return f32::INFINITY;
                     }
                     if let Some(c) = &cand
@@ -191,14 +187,20 @@ impl Estimators {
                     return t_out;
                 }
             }
-            match accel.item_hit(inst, o, d, r.tmax) {
+            match accel.item_hit(inst, o, d, tmax) {
                 Some(h) => {
                     best = Some(h);
                     h.t
                 }
                 None => f32::INFINITY,
             }
-        });
+        };
+        accel
+            .tlas
+            .traverse(o.into(), d.into(), tmax, true, |item, tmax| {
+                *tmax = tmax.min(visit(accel.tlas_items[item as usize], *tmax));
+                Visit::Continue
+            });
         if chords_overlap {
             stats.ambiguous += 1;
             return accel

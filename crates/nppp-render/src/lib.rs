@@ -3,6 +3,7 @@
 
 pub mod accel;
 pub mod bsdf;
+pub mod bvh4;
 pub mod camera;
 pub mod datagen;
 pub mod estimator;

@@ -44,7 +44,23 @@ impl RenderStats {
 /// parallel and their means go straight into the band, so the only
 /// full-resolution buffer is the f32 image itself (12 bytes per pixel: 3.2 GB
 /// at the largest allowed 16384 x 16384), never a full-resolution f64 film.
+///
+/// Panics if estimators are attached to a scene built by
+/// [`RenderScene::new`]: their instances were merged into the world BLAS and
+/// the estimators would silently never be used.
 pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats) {
+    if let Some(e) = &scene.estimators {
+        let merged = e
+            .per_instance
+            .iter()
+            .enumerate()
+            .find(|(i, est)| est.is_some() && scene.accel.is_merged(*i));
+        assert!(
+            merged.is_none(),
+            "instance {:?} has an estimator but was merged: build the scene with RenderScene::for_estimators",
+            merged.map(|m| m.0)
+        );
+    }
     let (w, h) = (scene.camera.width, scene.camera.height);
     let total = w as u64 * h as u64 * opts.spp as u64;
     let bar = if opts.progress {

@@ -31,7 +31,9 @@ pub struct RenderScene {
     /// Absolute floor for ray offsets: relative to the scene's size so that the
     /// same scene at 1e-4 and 1e4 is offset alike.
     pub offset_floor: f32,
-    /// Estimators attached to instances; `None` runs no estimator code at all.
+    /// Estimators attached to instances; `None` runs no estimator code at
+    /// all. Only a scene built by [`RenderScene::for_estimators`] can use
+    /// them ([`crate::render`] checks).
     pub estimators: Option<crate::estimator::Estimators>,
 }
 
@@ -55,7 +57,20 @@ pub fn surface_of(m: &Material) -> SurfaceKind {
 }
 
 impl RenderScene {
+    /// For plain path tracing: every instance whose mesh is used once,
+    /// estimator or not, is merged into the world BLAS (1.2x the samples/s of
+    /// keeping the default scene's knot instanced, measured).
     pub fn new(scene: &Scene) -> Self {
+        Self::build(scene, false)
+    }
+
+    /// For rendering with estimators: instances that name one keep their own
+    /// BLAS under the TLAS, where the estimator query can stand in for it.
+    pub fn for_estimators(scene: &Scene) -> Self {
+        Self::build(scene, true)
+    }
+
+    fn build(scene: &Scene, keep_estimator_instances: bool) -> Self {
         let inst: Vec<(usize, nppp_scene::Transform)> = scene
             .instances
             .iter()
@@ -64,7 +79,7 @@ impl RenderScene {
         let keep: Vec<bool> = scene
             .instances
             .iter()
-            .map(|i| i.estimator.is_some())
+            .map(|i| keep_estimator_instances && i.estimator.is_some())
             .collect();
         let accel = Accel::build(&scene.meshes, &inst, &keep);
         let geo_normals: Vec<Vec<Vec3>> = scene

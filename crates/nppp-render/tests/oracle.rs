@@ -38,7 +38,7 @@ fn render_mode(
     seed: u64,
 ) -> (nppp_render::Image, nppp_render::RenderStats) {
     let scene = scene_from_str(json);
-    let mut rs = RenderScene::new(&scene);
+    let mut rs = RenderScene::for_estimators(&scene);
     rs.estimators = Estimators::load(&scene, mode, p).unwrap();
     nppp_render::render(
         &rs,
