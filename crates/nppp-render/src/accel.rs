@@ -171,8 +171,10 @@ pub struct Accel {
     /// Per instance: lives in the merged world BLAS.
     merged_flags: Vec<bool>,
     merged: Option<Blas>,
-    /// Per merged triangle: (instance, triangle of its mesh).
-    merged_map: Vec<(u32, u32)>,
+    /// Per merged instance, in merge order: (its first merged triangle,
+    /// instance). A hit's instance is a binary search in this short, cached
+    /// table, not a load from a per-triangle table (a cache miss per hit).
+    merged_ranges: Vec<(u32, u32)>,
     /// World-space bounds of every instance (for the scene's scale and the TLAS).
     pub instance_bounds: Vec<(Vec3, Vec3)>,
 }
@@ -241,7 +243,7 @@ impl Accel {
             })
             .collect();
         let mut world = Mesh::default();
-        let mut merged_map = Vec::new();
+        let mut merged_ranges = Vec::new();
         for (i, (m, _)) in instances.iter().enumerate() {
             if !merge[i] {
                 continue;
@@ -251,11 +253,11 @@ impl Accel {
             world
                 .positions
                 .extend(mesh.positions.iter().map(|p| xforms[i].point_to_world(*p)));
-            for (k, t) in mesh.triangles.iter().enumerate() {
+            merged_ranges.push((world.triangles.len() as u32, i as u32));
+            for t in &mesh.triangles {
                 world
                     .triangles
                     .push([t[0] + base, t[1] + base, t[2] + base]);
-                merged_map.push((i as u32, k as u32));
             }
         }
         let instance_bounds: Vec<(Vec3, Vec3)> = xforms
@@ -281,7 +283,7 @@ impl Accel {
             tlas_items,
             merged_flags: merge,
             merged,
-            merged_map,
+            merged_ranges,
             instance_bounds,
         }
     }
@@ -293,7 +295,14 @@ impl Accel {
             .merged
             .as_ref()?
             .intersect(o.into(), d.into(), 0.0, tmax)?;
-        let (instance, prim) = self.merged_map[h.prim as usize];
+        // The last range starting at or before the hit triangle (ranges of
+        // empty meshes share a start; the later one holds the triangles).
+        let r = self
+            .merged_ranges
+            .partition_point(|&(first, _)| first <= h.prim)
+            - 1;
+        let (first, instance) = self.merged_ranges[r];
+        let prim = h.prim - first;
         Some(SceneHit {
             t: h.t,
             instance,

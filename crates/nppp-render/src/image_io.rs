@@ -134,11 +134,27 @@ pub fn write_atomically(
 }
 
 pub fn write_exr(img: &Image, path: &Path) -> Result<(), ImageError> {
+    use exr::prelude::{Encoding, LineOrder, SpecificChannels, Vec2, WritableImage};
+    // exr's default encoding leaves the line order unspecified, and its
+    // parallel compressor then writes blocks as they finish: the same pixels
+    // gave different bytes from run to run. Increasing order makes the file
+    // itself deterministic (RLE tiles as before).
+    let encoding = Encoding {
+        line_order: LineOrder::Increasing,
+        ..Encoding::FAST_LOSSLESS
+    };
+    let channels = SpecificChannels::rgb(|Vec2(x, y): Vec2<usize>| {
+        let p = img.pixels[y * img.width as usize + x];
+        (p[0], p[1], p[2])
+    });
     write_atomically(path, |tmp| {
-        exr::prelude::write_rgb_file(tmp, img.width as usize, img.height as usize, |x, y| {
-            let p = img.pixels[y * img.width as usize + x];
-            (p[0], p[1], p[2])
-        })
+        exr::prelude::Image::from_encoded_channels(
+            (img.width as usize, img.height as usize),
+            encoding,
+            channels,
+        )
+        .write()
+        .to_file(tmp)
         .map_err(|e| e.to_string())
     })
 }
