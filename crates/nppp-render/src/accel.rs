@@ -26,6 +26,8 @@ pub struct ObjectHit {
     pub prim: u32,
     pub b1: f32,
     pub b2: f32,
+    /// Unit geometric normal (e1 x e2), object space.
+    pub ng: Vec3,
 }
 
 /// Bounds of the triangles that can be hit, not of every position: a vertex
@@ -88,6 +90,7 @@ impl Blas {
             prim: h.prim,
             b1: h.b1,
             b2: h.b2,
+            ng: h.ng.normalize_or_zero(),
         })
     }
 
@@ -146,6 +149,9 @@ pub struct SceneHit {
     pub prim: u32,
     pub b1: f32,
     pub b2: f32,
+    /// Unit geometric normal, world space (the front side is the mesh's
+    /// counter-clockwise side; scale is positive, so transforms keep it).
+    pub ng: Vec3,
 }
 
 /// "Skip no instance" for [`Accel::intersect_skipping`].
@@ -309,6 +315,7 @@ impl Accel {
             prim,
             b1: h.b1,
             b2: h.b2,
+            ng: h.ng,
         })
     }
 
@@ -326,6 +333,7 @@ impl Accel {
             prim: h.prim,
             b1: h.b1,
             b2: h.b2,
+            ng: x.dir_to_world(h.ng),
         })
     }
 

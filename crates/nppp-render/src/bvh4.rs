@@ -70,6 +70,10 @@ pub struct MeshHit {
     pub prim: u32,
     pub b1: f32,
     pub b2: f32,
+    /// e1 x e2 of the triangle (unnormalized, the BVH's space): read from
+    /// the packet just tested, so shading needs no per-triangle normal table
+    /// (a cache miss per hit).
+    pub ng: Vec3,
 }
 
 /// Nodes of a 4-wide tree; what its leaves hold is its owner's business.
@@ -331,11 +335,13 @@ impl MeshBvh {
                         mask &= mask - 1;
                         if t[lane] < *tmax {
                             *tmax = t[lane];
+                            let e = |v: &[Vec4; 3]| Vec3::new(v[0][lane], v[1][lane], v[2][lane]);
                             best = Some(MeshHit {
                                 t: t[lane],
                                 prim: p.prim[lane],
                                 b1: b1[lane],
                                 b2: b2[lane],
+                                ng: e(&p.e1).cross(e(&p.e2)),
                             });
                         }
                     }

@@ -144,7 +144,7 @@ impl RenderScene {
     pub fn normals_at(&self, h: &SceneHit) -> (Vec3, Vec3) {
         let x = &self.accel.instances[h.instance as usize];
         let mesh = x.blas as usize;
-        let ng = x.dir_to_world(self.geo_normals[mesh][h.prim as usize]);
+        let ng = h.ng;
         let ns = match &self.shading_normals[mesh] {
             Some(n) => {
                 let [n0, n1, n2] = n[h.prim as usize];
