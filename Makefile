@@ -27,7 +27,7 @@ TRAIN_FLAGS ?= --seed 1 --minutes 0
 BAKE_FLAGS ?= --latent-grid 32 --bits 4 --mask-grid 64 --mask-bits 4
 P ?= 2
 
-.PHONY: all build render test test-wgpu bench clean help data train bake
+.PHONY: all build render test test-wgpu bench clean help data train bake speed
 all: render
 
 help:
@@ -97,6 +97,13 @@ endif
 bench: build
 	$(NPPP) bench --quick
 	RUSTFLAGS="$(RELEASE_RUSTFLAGS)" cargo bench -p nppp-benches
+
+# Side by side with Mitsuba 3 on the default scene (optional, Python): the
+# procedural knot is exported to OBJ for Mitsuba first. README "Speed".
+speed: build
+	mkdir -p $(OUT)
+	$(NPPP) mesh --scene $(OBJECT_SCENE) --mesh knot --out $(OUT)/knot.obj
+	$(MAKE) mitsuba-speed SCENE=$(OBJECT_SCENE) THREADS=$(or $(THREADS),2) MESH_OBJ=knot=$(OUT)/knot.obj
 
 clean:
 	rm -rf $(OUT)

@@ -5,6 +5,9 @@
 #                    [MAX_BOUNCES=M] [SEED=S] [THREADS=T] [TIME=1] [MESH_OBJ="name=file.obj ..."]
 #                    an OUT not ending in .exr is a folder: OUT/<scene name>.mitsuba.exr
 #   make mitsuba-compare A=a.exr B=reference.exr [TOL_MEAN=0.02]
+#   make mitsuba-speed [SCENE=...] [SPP=64] [THREADS=2] [ROUNDS=6] [MESH_OBJ=...]
+#                    nppp and Mitsuba (VARIANT, default llvm_ad_rgb, rr_depth 5 and 3) run
+#                    alternately; render time alone, medians and ratios
 #   make mitsuba-conformance [VARIANT=...]     camera convention check against shared/conformance
 #   make mitsuba-venv                          just create .venv-mitsuba
 #   make mitsuba-llvm                          install Debian's libllvm19 (for VARIANT=llvm_ad_rgb)
@@ -25,7 +28,7 @@ MITSUBA_SUDO    := $(if $(filter 0,$(shell id -u)),,sudo)
 # Dr.Jit's LLVM backend needs libLLVM >= 16: use DRJIT_LIBLLVM_PATH if set, else find Debian's.
 MITSUBA_LLVM_ENV = $(if $(filter llvm%,$(MITSUBA_VARIANT)),DRJIT_LIBLLVM_PATH="$${DRJIT_LIBLLVM_PATH:-$$(ls /usr/lib/*/libLLVM-19.so /usr/lib/*/libLLVM.so.19* 2>/dev/null | head -n1)}")
 
-.PHONY: mitsuba-venv mitsuba-llvm mitsuba-ref mitsuba-compare mitsuba-conformance
+.PHONY: mitsuba-venv mitsuba-llvm mitsuba-ref mitsuba-compare mitsuba-conformance mitsuba-speed
 
 mitsuba-venv: $(MITSUBA_STAMP)
 
@@ -54,6 +57,14 @@ mitsuba-ref: $(MITSUBA_STAMP) $(if $(filter llvm%,$(MITSUBA_VARIANT)),mitsuba-ll
 mitsuba-compare: $(MITSUBA_STAMP)
 	@test -n "$(A)" -a -n "$(B)" || { echo "usage: make mitsuba-compare A=test.exr B=reference.exr [TOL_MEAN=0.02]"; exit 2; }
 	$(MITSUBA_PY) $(MITSUBA_DIR)/compare_exr.py "$(A)" "$(B)" $(if $(TOL_MEAN),--tol-mean $(TOL_MEAN))
+
+MITSUBA_SPEED_VARIANT = $(or $(VARIANT),llvm_ad_rgb)
+mitsuba-speed: $(MITSUBA_STAMP) mitsuba-llvm build
+	@test -n "$(SCENE)" || { echo "usage: make mitsuba-speed SCENE=scene.json [SPP=64] [THREADS=2] [ROUNDS=6] [MESH_OBJ=NAME=FILE.obj]"; exit 2; }
+	DRJIT_LIBLLVM_PATH="$${DRJIT_LIBLLVM_PATH:-$$(ls /usr/lib/*/libLLVM-19.so /usr/lib/*/libLLVM.so.19* 2>/dev/null | head -n1)}" \
+	  $(MITSUBA_PY) $(MITSUBA_DIR)/speed_compare.py "$(NPPP)" "$(SCENE)" \
+	  --variant $(MITSUBA_SPEED_VARIANT) --spp $(or $(SPP),64) --threads $(or $(THREADS),2) --rounds $(or $(ROUNDS),6) \
+	  $(foreach m,$(MESH_OBJ),--mesh-obj "$(m)")
 
 mitsuba-conformance: $(MITSUBA_STAMP) $(if $(filter llvm%,$(MITSUBA_VARIANT)),mitsuba-llvm)
 	$(MITSUBA_LLVM_ENV) $(MITSUBA_PY) $(MITSUBA_DIR)/check_conformance.py --variant $(MITSUBA_VARIANT)
