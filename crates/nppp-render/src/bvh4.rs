@@ -111,7 +111,7 @@ impl RaySimd {
     #[inline(always)]
     fn new(o: Vec3A, d: Vec3A) -> Self {
         // A zero component would make 0 * inf = NaN in the slab test; a tiny
-        // one of the same sign gives the limit the slab test wants.
+        // one of the same sign (-0.0 included) gives the limit it wants.
         let safe = |c: f32| {
             if c.abs() < 1e-30 {
                 1.0 / 1e-30f32.copysign(c)
@@ -119,15 +119,15 @@ impl RaySimd {
                 1.0 / c
             }
         };
+        let inv = Vec3A::new(safe(d.x), safe(d.y), safe(d.z));
         Self {
             o: [Vec4::splat(o.x), Vec4::splat(o.y), Vec4::splat(o.z)],
             d: [Vec4::splat(d.x), Vec4::splat(d.y), Vec4::splat(d.z)],
-            inv: [
-                Vec4::splat(safe(d.x)),
-                Vec4::splat(safe(d.y)),
-                Vec4::splat(safe(d.z)),
-            ],
-            neg: [d.x < 0.0, d.y < 0.0, d.z < 0.0],
+            inv: [Vec4::splat(inv.x), Vec4::splat(inv.y), Vec4::splat(inv.z)],
+            // From the inverse, not from `d`: a -0.0 component has a negative
+            // inverse, and `-0.0 < 0.0` is false (the slabs would be swapped
+            // wrongly and every box missed).
+            neg: [inv.x < 0.0, inv.y < 0.0, inv.z < 0.0],
         }
     }
 
@@ -802,9 +802,11 @@ mod tests {
                 let o = Vec3A::new(rng.uniform(), rng.uniform(), rng.uniform()) * 14.0 - 2.0;
                 let mut d = Vec3A::new(rng.uniform(), rng.uniform(), rng.uniform()) - 0.5;
                 if axis < 3 {
-                    // Exactly axis-parallel: zero components in the slab test.
-                    d = Vec3A::ZERO;
-                    d[axis] = 1.0;
+                    // Exactly axis-parallel: zero components in the slab
+                    // test, of either sign (-0.0 arises from negations).
+                    let z = |k: usize| if (seed >> k) & 1 == 0 { 0.0 } else { -0.0 };
+                    d = Vec3A::new(z(0), z(1), z(2));
+                    d[axis] = if rng.uniform() < 0.5 { 1.0 } else { -1.0 };
                 }
                 let d = d.normalize();
                 let tmax = if rng.uniform() < 0.5 { f32::INFINITY } else { rng.uniform() * 20.0 };
