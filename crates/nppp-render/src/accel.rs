@@ -1,5 +1,7 @@
-//! Ray queries against the scene: a bottom-level BVH per mesh (crate::bvh4)
-//! and a top-level BVH (obvhs' CWBVH) over instances with rigid transforms and uniform scale.
+//! Ray queries against the scene: a bottom-level BVH per mesh and a
+//! top-level BVH over instances with rigid transforms and uniform scale
+//! (both [`crate::bvh4`] layouts), plus one world-space BLAS of everything
+//! that need not be instanced.
 //!
 //! Instances only reference their mesh's BLAS, so a mesh instanced thousands
 //! of times is stored once. Rays are moved into object space per instance;
