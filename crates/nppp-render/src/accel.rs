@@ -96,6 +96,13 @@ impl Blas {
         })
     }
 
+    /// False when the ray (t > 0) certainly misses the mesh: it enters none
+    /// of its BVH root's child boxes.
+    #[inline]
+    pub fn may_hit(&self, o: Vec3A, d: Vec3A) -> bool {
+        self.bvh.may_hit(o, d)
+    }
+
     /// True if anything lies in (tmin, tmax); stops at the first hit.
     #[inline]
     pub fn occluded(&self, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {

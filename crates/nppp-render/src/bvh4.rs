@@ -359,6 +359,21 @@ impl MeshBvh {
         })
     }
 
+    /// Whether the ray (t > 0) enters any of the root's child boxes: false
+    /// means it certainly misses the mesh. One node test, no traversal.
+    #[inline]
+    pub fn may_hit(&self, o: Vec3A, d: Vec3A) -> bool {
+        self.tree.root != EMPTY
+            && RaySimd::new(o, d)
+                .boxes(
+                    &self.tree.nodes[self.tree.root as usize],
+                    0.0,
+                    f32::INFINITY,
+                )
+                .1
+                != 0
+    }
+
     /// True if any triangle lies in (tmin, tmax); stops at the first found.
     #[inline]
     pub fn occluded(&self, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
