@@ -252,6 +252,15 @@ impl QuantizedGrid {
                 _ => {}
             }
         }
+        if self.bits == 4 {
+            // The default estimator's widths (16-channel latents, 1-channel
+            // mask) at 4 bits, likewise.
+            match ch {
+                16 => return self.blend4::<16, 8>(&nodes, &ws, out),
+                1 => return self.blend4_one(&nodes, &ws, out),
+                _ => {}
+            }
+        }
         out.fill(0.0);
         let whole_bytes = (ch * bits).is_multiple_of(8);
         for (&node, &w) in nodes.iter().zip(&ws) {
@@ -309,6 +318,39 @@ impl QuantizedGrid {
         for (((o, a), &sc), &off) in out.iter_mut().zip(acc).zip(&self.scale).zip(&self.offset) {
             *o = a * sc + off;
         }
+    }
+}
+
+impl QuantizedGrid {
+    /// 4-bit blend of the 16 corners for exactly `N` channels (`B` = N / 2
+    /// bytes per node, low nibble first, as `quant::get_code` packs them).
+    #[inline(always)]
+    fn blend4<const N: usize, const B: usize>(&self, nodes: &[usize; 16], ws: &[f32; 16], out: &mut [f32]) {
+        debug_assert_eq!(2 * B, N);
+        let mut acc = [0.0f32; N];
+        for (&node, &w) in nodes.iter().zip(ws) {
+            if let Some(codes) = self.data.get(node * B..).and_then(|s| s.first_chunk::<B>()) {
+                for (pair, &q) in acc.chunks_exact_mut(2).zip(codes) {
+                    pair[0] += w * (q & 0x0f) as f32;
+                    pair[1] += w * (q >> 4) as f32;
+                }
+            }
+        }
+        for (((o, a), &sc), &off) in out.iter_mut().zip(acc).zip(&self.scale).zip(&self.offset) {
+            *o = a * sc + off;
+        }
+    }
+
+    /// 4-bit blend of one channel (two nodes per byte).
+    #[inline(always)]
+    fn blend4_one(&self, nodes: &[usize; 16], ws: &[f32; 16], out: &mut [f32]) {
+        let mut acc = 0.0f32;
+        for (&node, &w) in nodes.iter().zip(ws) {
+            if let Some(&q) = self.data.get(node >> 1) {
+                acc += w * ((q >> ((node & 1) << 2)) & 0x0f) as f32;
+            }
+        }
+        out[0] = acc * self.scale[0] + self.offset[0];
     }
 }
 
