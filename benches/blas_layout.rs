@@ -2,8 +2,7 @@
 //! same triangles and rays, one thread, runs interleaved so that a noisy
 //! machine hurts both alike. Prints Mrays/s per ray kind and the ratio.
 
-use glam::{Vec2, Vec3, Vec3A};
-use nppp_geom::{SampleRng, sampling::uniform_sphere};
+use glam::{Vec3, Vec3A};
 use nppp_render::RenderScene;
 use nppp_render::bvh4::MeshBvh;
 use obvhs::{BvhBuildParams, ray::Ray, ray::RayHit, triangle::Triangle};
@@ -44,28 +43,7 @@ fn main() {
         t_cw
     );
 
-    let mut rng = SampleRng::from_seed(1);
-    let (w, h) = (rs.camera.width as f32, rs.camera.height as f32);
-    let n = 1 << 18;
-    let primary: Vec<(Vec3, Vec3)> = (0..n)
-        .map(|_| {
-            (
-                rs.camera.origin,
-                rs.camera.ray_dir(rng.uniform2() * Vec2::new(w, h)),
-            )
-        })
-        .collect();
-    let mut incoherent = Vec::new();
-    let mut shadow = Vec::new();
-    let light = Vec3::new(278.0, 548.0, 279.5);
-    for (o, d) in &primary {
-        if let Some(hit) = rs.accel.intersect(*o, *d, f32::INFINITY) {
-            let p = *o + *d * (hit.t * 0.999);
-            incoherent.push((p, uniform_sphere(rng.uniform2())));
-            let to = light - p;
-            shadow.push((p, to.normalize(), to.length() * 0.999));
-        }
-    }
+    let (primary, incoherent, shadow) = nppp_benches::bench_rays(&rs, 1 << 18);
     let tri_test = |r: &Ray, id: usize| {
         let t = &tris[cw.primitive_indices[id] as usize];
         t.intersect(r)

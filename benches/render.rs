@@ -3,47 +3,17 @@
 //! BSDF sampling, and whole-path samples per second on the default scene.
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use glam::{Vec2, Vec3};
-use nppp_geom::{SampleRng, sampling::uniform_sphere};
+use glam::Vec3;
+use nppp_geom::SampleRng;
 use nppp_render::bsdf::Bsdf;
 use nppp_render::{RenderOptions, RenderScene};
 use rayon::prelude::*;
 
 const RAYS: usize = 1 << 16;
 
-/// Rays as (origin, direction); shadow rays also carry their length.
-type Rays = Vec<(Vec3, Vec3)>;
-type ShadowRays = Vec<(Vec3, Vec3, f32)>;
-
-fn rays(rs: &RenderScene) -> (Rays, Rays, ShadowRays) {
-    let mut rng = SampleRng::from_seed(1);
-    let (w, h) = (rs.camera.width as f32, rs.camera.height as f32);
-    let primary: Vec<(Vec3, Vec3)> = (0..RAYS)
-        .map(|_| {
-            (
-                rs.camera.origin,
-                rs.camera.ray_dir(rng.uniform2() * Vec2::new(w, h)),
-            )
-        })
-        .collect();
-    // Incoherent: from the first hit of each primary ray, in a random direction.
-    let mut incoherent = Vec::with_capacity(RAYS);
-    let mut shadow = Vec::with_capacity(RAYS);
-    let light = Vec3::new(278.0, 548.0, 279.5);
-    for (o, d) in &primary {
-        if let Some(hit) = rs.accel.intersect(*o, *d, f32::INFINITY) {
-            let p = *o + *d * (hit.t * 0.999);
-            incoherent.push((p, uniform_sphere(rng.uniform2())));
-            let to = light - p;
-            shadow.push((p, to.normalize(), to.length() * 0.999));
-        }
-    }
-    (primary, incoherent, shadow)
-}
-
 fn bvh(c: &mut Criterion) {
     let rs = RenderScene::new(&nppp_benches::default_scene());
-    let (primary, incoherent, shadow) = rays(&rs);
+    let (primary, incoherent, shadow) = nppp_benches::bench_rays(&rs, RAYS);
     let mut g = c.benchmark_group("bvh_2_threads");
     g.throughput(Throughput::Elements(primary.len() as u64));
     g.bench_function("closest_hit_primary", |b| {
