@@ -26,7 +26,8 @@ MITSUBA_VARIANT  = $(or $(VARIANT),scalar_rgb)
 MITSUBA_SUDO    := $(if $(filter 0,$(shell id -u)),,sudo)
 
 # Dr.Jit's LLVM backend needs libLLVM >= 16: use DRJIT_LIBLLVM_PATH if set, else find Debian's.
-MITSUBA_LLVM_ENV = $(if $(filter llvm%,$(MITSUBA_VARIANT)),DRJIT_LIBLLVM_PATH="$${DRJIT_LIBLLVM_PATH:-$$(ls /usr/lib/*/libLLVM-19.so /usr/lib/*/libLLVM.so.19* 2>/dev/null | head -n1)}")
+MITSUBA_LLVM_PATH_ENV = DRJIT_LIBLLVM_PATH="$${DRJIT_LIBLLVM_PATH:-$$(ls /usr/lib/*/libLLVM-19.so /usr/lib/*/libLLVM.so.19* 2>/dev/null | head -n1)}"
+MITSUBA_LLVM_ENV = $(if $(filter llvm%,$(MITSUBA_VARIANT)),$(MITSUBA_LLVM_PATH_ENV))
 
 .PHONY: mitsuba-venv mitsuba-llvm mitsuba-ref mitsuba-compare mitsuba-conformance mitsuba-speed
 
@@ -61,8 +62,7 @@ mitsuba-compare: $(MITSUBA_STAMP)
 MITSUBA_SPEED_VARIANT = $(or $(VARIANT),llvm_ad_rgb)
 mitsuba-speed: $(MITSUBA_STAMP) mitsuba-llvm build
 	@test -n "$(SCENE)" || { echo "usage: make mitsuba-speed SCENE=scene.json [SPP=64] [THREADS=2] [ROUNDS=6] [MESH_OBJ=NAME=FILE.obj]"; exit 2; }
-	DRJIT_LIBLLVM_PATH="$${DRJIT_LIBLLVM_PATH:-$$(ls /usr/lib/*/libLLVM-19.so /usr/lib/*/libLLVM.so.19* 2>/dev/null | head -n1)}" \
-	  $(MITSUBA_PY) $(MITSUBA_DIR)/speed_compare.py "$(NPPP)" "$(SCENE)" \
+	$(MITSUBA_LLVM_PATH_ENV) $(MITSUBA_PY) $(MITSUBA_DIR)/speed_compare.py "$(NPPP)" "$(SCENE)" \
 	  --variant $(MITSUBA_SPEED_VARIANT) --spp $(or $(SPP),64) --threads $(or $(THREADS),2) --rounds $(or $(ROUNDS),6) \
 	  $(foreach m,$(MESH_OBJ),--mesh-obj "$(m)")
 
