@@ -160,11 +160,15 @@ impl Config {
         }
     }
     /// The scene layout this configuration renders: merged for PT,
-    /// estimator instances kept apart otherwise.
-    fn scene<'a>(&self, pt: &'a RenderScene, with_estimators: &'a RenderScene) -> &'a RenderScene {
+    /// estimator instances kept apart otherwise (where that differs).
+    fn scene<'a>(
+        &self,
+        pt: &'a RenderScene,
+        with_estimators: Option<&'a RenderScene>,
+    ) -> &'a RenderScene {
         match self.kind {
             Kind::Pt => pt,
-            Kind::Nppp | Kind::Oracle => with_estimators,
+            Kind::Nppp | Kind::Oracle => with_estimators.unwrap_or(pt),
         }
     }
     fn slug(&self) -> String {
@@ -436,9 +440,16 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     let t_build = Instant::now();
     // Plain path tracing gets its fastest layout (estimator instances merged
     // into the world BLAS); estimator runs get theirs.
-    let rs = RenderScene::new(&scene);
+    let mut rs = RenderScene::new(&scene);
     let build_seconds = t_build.elapsed().as_secs_f64();
-    let mut rs_est = RenderScene::for_estimators(&scene);
+    // A second layout only where the first merged an estimator instance
+    // (a once-used mesh); otherwise both would be the same scene.
+    let mut rs_est = scene
+        .instances
+        .iter()
+        .enumerate()
+        .any(|(i, inst)| inst.estimator.is_some() && rs.accel.is_merged(i))
+        .then(|| RenderScene::for_estimators(&scene));
     let triangles_unique: u64 = scene.meshes.iter().map(|m| m.triangles.len() as u64).sum();
     let triangles_instanced: u64 = scene
         .instances
@@ -538,9 +549,19 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
 
     // Warm-up (caches, thread pool, first touch of the estimator grids), untimed.
     for c in &configs {
-        attach(&mut rs_est, c, &mut neural, &mut oracle);
-        let _ = render_with(c.scene(&rs, &rs_est), 1, c.m, 0);
-        detach(&mut rs_est, c, &mut neural, &mut oracle);
+        attach(
+            rs_est.as_mut().unwrap_or(&mut rs),
+            c,
+            &mut neural,
+            &mut oracle,
+        );
+        let _ = render_with(c.scene(&rs, rs_est.as_ref()), 1, c.m, 0);
+        detach(
+            rs_est.as_mut().unwrap_or(&mut rs),
+            c,
+            &mut neural,
+            &mut oracle,
+        );
     }
 
     let mut measurements = Vec::new();
@@ -548,11 +569,21 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     for seed in 1..=plan.seeds as u64 {
         for &spp in &plan.ladder {
             for (ci, c) in configs.iter().enumerate() {
-                let estimator_bytes = attach(&mut rs_est, c, &mut neural, &mut oracle);
-                let rs_c = c.scene(&rs, &rs_est);
+                let estimator_bytes = attach(
+                    rs_est.as_mut().unwrap_or(&mut rs),
+                    c,
+                    &mut neural,
+                    &mut oracle,
+                );
+                let rs_c = c.scene(&rs, rs_est.as_ref());
                 let (img, mut stats) = render_with(rs_c, spp, c.m, seed);
                 stats.seconds = robust_seconds(rs_c, spp, c.m, seed, stats.seconds);
-                detach(&mut rs_est, c, &mut neural, &mut oracle);
+                detach(
+                    rs_est.as_mut().unwrap_or(&mut rs),
+                    c,
+                    &mut neural,
+                    &mut oracle,
+                );
                 let errors = metrics::compare(&img, &reference)
                     .with_context(|| format!("{name}: comparing {} to the reference", c.label()))?;
                 let flip = flip_mean(&img, &reference);
