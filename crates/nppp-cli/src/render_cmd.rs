@@ -31,7 +31,10 @@ pub struct RenderArgs {
     pub min_bounces: Option<u32>,
     /// What answers an instance's `estimator`: the baked network, the oracle
     /// (traces the real object alone; for validating the integration), or
-    /// nothing (plain path tracing).
+    /// nothing (plain path tracing). `cost-floor` is a timing instrument,
+    /// not a render: the baked masks decide entries and every entry ends its
+    /// path for free, so its time is a lower bound for any estimator using
+    /// those masks (the image is biased dark by design).
     #[arg(long, value_enum, default_value_t = EstimatorChoice::Neural)]
     pub estimators: EstimatorChoice,
     /// Which decoder answers batched estimator queries: the plain-Rust CPU
@@ -52,6 +55,7 @@ pub enum EstimatorChoice {
     Off,
     Neural,
     Oracle,
+    CostFloor,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -162,6 +166,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         EstimatorChoice::Off => EstimatorMode::Off,
         EstimatorChoice::Neural => EstimatorMode::Neural,
         EstimatorChoice::Oracle => EstimatorMode::Oracle,
+        EstimatorChoice::CostFloor => {
+            eprintln!(
+                "warning: --estimators cost-floor ends every path at its first estimator entry: the image is not an estimate of the scene (timing only)"
+            );
+            EstimatorMode::CostFloor
+        }
     };
     let mut rs = if matches!(mode, EstimatorMode::Off) {
         RenderScene::new(&scene)

@@ -48,6 +48,13 @@ pub enum EstimatorModel {
         surface: SurfaceKind,
         max_internal_bounces: u32,
     },
+    /// A timing instrument, not an estimate: the baked estimator's mask
+    /// decides entries as in a neural render, and every entry ends its path
+    /// at no further cost (no latent lookup, no decoder, no continuation).
+    /// No estimator that uses this mask can render a sample faster, so its
+    /// time bounds what any network could gain on a scene. The image is
+    /// biased dark by design.
+    CostFloor { sampler: EstimatorSampler },
 }
 
 pub struct Estimator {
@@ -238,7 +245,9 @@ impl Estimators {
 
     fn mask_hits(&self, est: &Estimator, accel: &Accel, unit_ray: &Ray, pair: &SpherePair) -> bool {
         match &est.model {
-            EstimatorModel::Neural { sampler, .. } => sampler.hits(pair),
+            EstimatorModel::Neural { sampler, .. } | EstimatorModel::CostFloor { sampler } => {
+                sampler.hits(pair)
+            }
             EstimatorModel::Oracle { mesh, .. } => {
                 let o = est.sphere.from_unit_point(unit_ray.origin);
                 accel.blas[*mesh]
@@ -324,6 +333,18 @@ impl EntryBatch {
                         self.exits[i] = tr.decode(f, max_b, &mut stats.repairs);
                     }
                 }
+                EstimatorModel::CostFloor { .. } => {
+                    for &i in &self.rows {
+                        let entry = &self.entries[i].1;
+                        self.exits[i] = Exit {
+                            position: entry.pair.exit(),
+                            direction: entry.ray.dir,
+                            throughput: Vec3::ZERO,
+                            radiance: Vec3::ZERO,
+                            bounces: 0,
+                        };
+                    }
+                }
                 EstimatorModel::Oracle {
                     mesh,
                     surface,
@@ -367,6 +388,9 @@ pub enum EstimatorMode {
     Neural,
     /// Ground-truth walks through the real object for every instance that names an estimator.
     Oracle,
+    /// The baked files' masks, every entry ending its path: see
+    /// [`EstimatorModel::CostFloor`]. For timing only.
+    CostFloor,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -461,13 +485,15 @@ impl Estimators {
                     }
                     let sphere = baked.meta.sphere;
                     let sampler = EstimatorSampler::try_new(baked).map_err(file_err)?;
-                    Estimator {
-                        model: EstimatorModel::Neural {
+                    let model = if mode == EstimatorMode::CostFloor {
+                        EstimatorModel::CostFloor { sampler }
+                    } else {
+                        EstimatorModel::Neural {
                             sampler,
                             decoder: None,
-                        },
-                        sphere,
-                    }
+                        }
+                    };
+                    Estimator { model, sphere }
                 }
             };
             list.push(est);
@@ -487,7 +513,9 @@ impl Estimators {
         self.list
             .iter()
             .map(|e| match &e.model {
-                EstimatorModel::Neural { sampler, .. } => sampler.memory_bytes(),
+                EstimatorModel::Neural { sampler, .. } | EstimatorModel::CostFloor { sampler } => {
+                    sampler.memory_bytes()
+                }
                 EstimatorModel::Oracle { .. } => 0,
             })
             .sum()
