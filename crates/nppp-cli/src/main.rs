@@ -95,8 +95,13 @@ fn run(cli: Cli) -> Result<()> {
         Command::Mesh(a) => mesh_cmd::run(&a),
         Command::Info { file } => {
             let b = nppp_estimator::BakedEstimator::load(&file)?;
-            println!("{}", b.describe());
-            Ok(())
+            // Not println!: a closed pipe (`nppp info f | head -1`) is the
+            // reader's choice, not a crash.
+            use std::io::Write;
+            match writeln!(std::io::stdout(), "{}", b.describe()) {
+                Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+                _ => Ok(()),
+            }
         }
     }
 }

@@ -19,6 +19,20 @@ pub struct MeshArgs {
 }
 
 pub fn run(a: &MeshArgs) -> Result<()> {
+    // A slip of the flags must not replace the scene (or an image) with OBJ text.
+    anyhow::ensure!(
+        a.out
+            .extension()
+            .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case("obj")),
+        "--out {}: the output is a Wavefront OBJ; name it *.obj",
+        a.out.display()
+    );
+    let same_file = |x: &std::path::Path, y: &std::path::Path| matches!((x.canonicalize(), y.canonicalize()), (Ok(p), Ok(q)) if p == q);
+    anyhow::ensure!(
+        !same_file(&a.out, &a.scene),
+        "--out {} is the scene file itself",
+        a.out.display()
+    );
     let scene = nppp_scene::load_scene(&a.scene)?;
     let Some(i) = scene.mesh_names.iter().position(|n| *n == a.mesh) else {
         anyhow::bail!(

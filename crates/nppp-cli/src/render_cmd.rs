@@ -131,7 +131,29 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     let scene = nppp_scene::load_scene(&a.scene)?;
     // Read the reference first: a bad reference should fail before minutes of rendering.
     let reference = match &a.reference {
-        Some(p) => Some(image_io::read_exr(p)?),
+        Some(p) => {
+            let r = image_io::read_exr(p).with_context(|| {
+                format!(
+                    "--reference {}: cannot be read as an RGB OpenEXR image",
+                    p.display()
+                )
+            })?;
+            // Checked now, not after the render: every error metric would be NaN.
+            if let Some(i) = r
+                .pixels
+                .iter()
+                .position(|px| px.iter().any(|c| !c.is_finite() || *c < 0.0))
+            {
+                anyhow::bail!(
+                    "--reference {}: pixel ({}, {}) is {:?}; a reference must be finite and non-negative radiance",
+                    p.display(),
+                    i as u32 % r.width,
+                    i as u32 / r.width,
+                    r.pixels[i]
+                );
+            }
+            Some(r)
+        }
         None => None,
     };
     if let Some(r) = &reference

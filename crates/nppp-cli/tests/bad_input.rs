@@ -394,6 +394,15 @@ const SCENES: &[(&str, &[&str])] = &[
             "must be positive (as a 32-bit float)",
         ],
     ),
+    // Geometry that overflows 32-bit floats once placed in the world.
+    (
+        "world_extent_overflow.json",
+        &["instances[2].transform", "mesh \"block\"", "beyond 1e15"],
+    ),
+    (
+        "camera_too_far.json",
+        &["camera.position", "farther than 1e15"],
+    ),
     (
         "axis_zero.json",
         &["instances[0].transform.rotate.axis", "zero length"],

@@ -61,6 +61,6 @@ fn wgpu_device() -> Result<Device> {
 fn wgpu_device() -> Result<Device> {
     anyhow::bail!(
         "this nppp was built without the `wgpu` cargo feature; rebuild with \
-         `--features nppp-nn/wgpu` or choose --backend flex|ndarray"
+         `--features nppp-nn/wgpu` or choose another backend (nppp render: --decoder burn-flex|burn-ndarray|cpu; nppp train/bake: --backend flex|ndarray)"
     )
 }

@@ -406,12 +406,4 @@ impl Accel {
     pub fn is_merged(&self, i: usize) -> bool {
         self.merged_flags.get(i).copied().unwrap_or(false)
     }
-
-    /// The largest coordinate magnitude in the scene: ray offsets are relative to it.
-    pub fn scene_extent(&self) -> f32 {
-        self.instance_bounds
-            .iter()
-            .map(|(a, b)| a.abs().max(b.abs()).max_element())
-            .fold(0.0, f32::max)
-    }
 }

@@ -303,7 +303,7 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
                 let (f, bsdf_pdf) = bsdf.eval(wo, frame.to_local(ls.wi));
                 if f != Vec3::ZERO {
                     let light_eps = (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL)
-                        .max(scene.offset_floor);
+                        .max(ls.offset_floor);
                     let tmax = ls.dist - light_eps;
                     if tmax > 0.0 && !scene.accel.occluded(origin, ls.wi, tmax) {
                         let w = power_heuristic(ls.pdf, bsdf_pdf);

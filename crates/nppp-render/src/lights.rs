@@ -3,7 +3,7 @@
 //! power (area times luminance of its radiance).
 
 use glam::{Vec2, Vec3};
-use nppp_geom::{luminance, sampling::uniform_triangle};
+use nppp_geom::sampling::uniform_triangle;
 
 #[derive(Clone, Copy, Debug)]
 pub struct LightTriangle {
@@ -14,6 +14,9 @@ pub struct LightTriangle {
     pub normal: Vec3,
     pub area: f32,
     pub radiance: Vec3,
+    /// Its instance's ray offset floor (`RenderScene::offset_floor`), for
+    /// ending shadow rays short of the light.
+    pub offset_floor: f32,
 }
 
 /// A point sampled on a light, with the solid-angle pdf seen from the shading point.
@@ -24,6 +27,7 @@ pub struct LightSample {
     pub dist: f32,
     pub radiance: Vec3,
     pub pdf: f32,
+    pub offset_floor: f32,
 }
 
 #[derive(Default)]
@@ -43,7 +47,12 @@ impl Lights {
         let mut cdf = Vec::with_capacity(triangles.len());
         let mut total = 0.0f64;
         for t in &triangles {
-            let w = (t.area * luminance(t.radiance)) as f64;
+            // In f64: a 1e38 lamp's power overflows f32, and an infinite
+            // weight below would silently drop the light from NEE.
+            let w = t.area as f64
+                * (0.2126 * t.radiance.x as f64
+                    + 0.7152 * t.radiance.y as f64
+                    + 0.0722 * t.radiance.z as f64);
             total += if w.is_finite() && w > 0.0 { w } else { 0.0 };
             cdf.push(total);
         }
@@ -54,7 +63,11 @@ impl Lights {
             pdf_area: vec![],
         };
         lights.pdf_area = (0..lights.triangles.len())
-            .map(|i| lights.select_pdf(i) / lights.triangles[i].area)
+            .map(|i| match lights.select_pdf(i) / lights.triangles[i].area {
+                // A zero-area or zero-power triangle is never chosen.
+                p if p.is_finite() => p,
+                _ => 0.0,
+            })
             .collect();
         lights
     }
@@ -66,6 +79,10 @@ impl Lights {
     /// Probability of choosing triangle `i`.
     #[inline]
     pub fn select_pdf(&self, i: usize) -> f32 {
+        // Emitters whose radiance is all zero give no light to choose.
+        if self.total <= 0.0 {
+            return 0.0;
+        }
         let prev = if i == 0 { 0.0 } else { self.cdf[i - 1] };
         ((self.cdf[i] - prev) / self.total) as f32
     }
@@ -112,6 +129,45 @@ impl Lights {
             dist,
             radiance: t.radiance,
             pdf,
+            offset_floor: t.offset_floor,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tri(scale: f32, radiance: f32) -> LightTriangle {
+        LightTriangle {
+            v0: Vec3::ZERO,
+            e1: Vec3::X * scale,
+            e2: Vec3::Z * scale,
+            normal: Vec3::NEG_Y,
+            area: 0.5 * scale * scale,
+            radiance: Vec3::splat(radiance),
+            offset_floor: 1e-7,
+        }
+    }
+
+    #[test]
+    fn a_lamp_whose_power_overflows_f32_is_still_sampled() {
+        // area 5e3 x luminance 1e38 is past f32::MAX.
+        let l = Lights::new(vec![tri(100.0, 1e38), tri(1.0, 1.0)]);
+        assert!(!l.is_empty());
+        assert!(l.select_pdf(0) > 0.99);
+        let s = l.sample(Vec3::new(0.2, -1.0, 0.2), 0.5, Vec2::new(0.3, 0.3));
+        assert!(s.is_some_and(|s| s.pdf.is_finite() && s.pdf > 0.0));
+    }
+
+    #[test]
+    fn dark_emitters_give_no_light_and_no_nan() {
+        let l = Lights::new(vec![tri(1.0, 0.0), tri(2.0, 0.0)]);
+        assert!(l.is_empty());
+        for i in 0..2 {
+            assert_eq!(l.select_pdf(i), 0.0);
+            assert_eq!(l.pdf_solid_angle(i, 3.0, 0.5), 0.0);
+        }
+        assert!(l.sample(Vec3::NEG_Y, 0.5, Vec2::splat(0.5)).is_none());
     }
 }

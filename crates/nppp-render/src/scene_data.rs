@@ -28,9 +28,13 @@ pub struct RenderScene {
     pub shading_normals: Vec<Option<Vec<[Vec3; 3]>>>,
     /// Per mesh: unit object-space geometric normal of each triangle.
     pub geo_normals: Vec<Vec<Vec3>>,
-    /// Absolute floor for ray offsets: relative to the scene's size so that the
-    /// same scene at 1e-4 and 1e4 is offset alike.
-    pub offset_floor: f32,
+    /// Per instance: absolute floor for ray offsets off its surface, relative
+    /// to the instance's own world-space size (its intersections' rounding
+    /// error scales with its vertices), so the same scene at 1e-4 and 1e4 is
+    /// offset alike and a huge ground plane does not push rays leaving a
+    /// small object through its neighbours (a 1e7 floor did, with the old
+    /// scene-wide floor: light leaked through a tube's walls).
+    pub offset_floor: Vec<f32>,
     /// Estimators attached to instances; `None` runs no estimator code at
     /// all. Only a scene built by [`RenderScene::for_estimators`] can use
     /// them ([`crate::render`] checks).
@@ -97,6 +101,11 @@ impl RenderScene {
             .collect();
         let mut surface = Vec::with_capacity(scene.instances.len());
         let mut light_base = Vec::with_capacity(scene.instances.len());
+        let offset_floor: Vec<f32> = accel
+            .instance_bounds
+            .iter()
+            .map(|(a, b)| a.abs().max(b.abs()).max_element().max(f32::MIN_POSITIVE) * 1e-7)
+            .collect();
         let mut light_tris = Vec::new();
         for (ii, i) in scene.instances.iter().enumerate() {
             let s = surface_of(&scene.materials[i.material]);
@@ -116,12 +125,12 @@ impl RenderScene {
                         normal: c.normalize_or_zero(),
                         area,
                         radiance,
+                        offset_floor: offset_floor[ii],
                     });
                 }
             }
             surface.push(s);
         }
-        let offset_floor = accel.scene_extent().max(f32::MIN_POSITIVE) * 1e-7;
         Self {
             camera: PinholeCamera::new(&scene.camera),
             lights: Lights::new(light_tris),
@@ -165,6 +174,6 @@ impl RenderScene {
     pub fn offset_at(&self, p: Vec3, instance: u32) -> f32 {
         let x = &self.accel.instances[instance as usize];
         let mag = p.abs().max_element().max(x.translation.abs().max_element());
-        (mag * OFFSET_REL).max(self.offset_floor)
+        (mag * OFFSET_REL).max(self.offset_floor[instance as usize])
     }
 }

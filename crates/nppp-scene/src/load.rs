@@ -19,6 +19,12 @@ use std::path::Path;
 /// The largest image side the renderer accepts (SCENE_FORMAT.md: "an image
 /// over 16384 x 16384 pixels" cannot be rendered).
 pub const MAX_IMAGE_SIDE: u32 = 16384;
+/// Largest world-space coordinate of any vertex (after its instance's
+/// transform) or of the camera. The renderer works in 32-bit floats: BVH
+/// surface areas, squared distances and ray offsets must stay finite and
+/// meaningful, and past this they do not (a box at 3e38 scaled by 2 used to
+/// reach the BVH builder as infinity).
+pub const MAX_WORLD_COORD: f64 = 1e15;
 
 /// Reads and validates a scene file. Relative OBJ and estimator paths are
 /// resolved against the file's folder.
@@ -281,6 +287,7 @@ impl Cx<'_> {
             .iter()
             .map(|(name, v)| self.mesh(v, &join_key(&mesh_path, name)))
             .collect::<Res<Vec<Mesh>>>()?;
+        self.check_world_extent(&camera, &meshes, &mesh_names, &instances)?;
         Ok(Scene {
             path: self.file.to_path_buf(),
             camera,
@@ -291,6 +298,65 @@ impl Cx<'_> {
             instances,
             render,
         })
+    }
+
+    /// Every instance's vertices, transformed to world space (in f64, so an
+    /// overflow is seen rather than produced), and the camera lie within
+    /// `MAX_WORLD_COORD`. The check uses each mesh's bounding box corners: a
+    /// rotation maps the box to one containing the vertices' images.
+    fn check_world_extent(
+        &self,
+        camera: &Camera,
+        meshes: &[Mesh],
+        mesh_names: &[String],
+        instances: &[Instance],
+    ) -> Res<()> {
+        let too_far = |v: DVec3| !v.is_finite() || v.abs().max_element() > MAX_WORLD_COORD;
+        if too_far(camera.position.as_dvec3()) {
+            return Err(self.invalid(
+                "camera.position",
+                format!(
+                    "[{:.3e}, {:.3e}, {:.3e}] is farther than {MAX_WORLD_COORD:e} from the origin (32-bit float geometry)",
+                    camera.position.x, camera.position.y, camera.position.z
+                ),
+            ));
+        }
+        let bounds: Vec<Option<(DVec3, DVec3)>> = meshes
+            .iter()
+            .map(|m| {
+                let mut it = m.positions.iter().map(|p| p.as_dvec3());
+                let first = it.next()?;
+                Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
+            })
+            .collect();
+        for (i, inst) in instances.iter().enumerate() {
+            let Some((lo, hi)) = bounds[inst.mesh] else {
+                continue;
+            };
+            let t = &inst.transform;
+            let rot = t.rotation.as_dquat();
+            let far = (0..8).map(|k| {
+                let c = DVec3::new(
+                    if k & 1 == 0 { lo.x } else { hi.x },
+                    if k & 2 == 0 { lo.y } else { hi.y },
+                    if k & 4 == 0 { lo.z } else { hi.z },
+                );
+                rot * (c * t.scale as f64) + t.translation.as_dvec3()
+            });
+            if let Some(c) = far.clone().find(|&c| too_far(c)) {
+                return Err(self.invalid(
+                    &format!("instances[{i}].transform"),
+                    format!(
+                        "places mesh \"{}\" out to [{:.3e}, {:.3e}, {:.3e}] in world space, beyond {MAX_WORLD_COORD:e} (32-bit float geometry); scale the scene down",
+                        mesh_names[inst.mesh],
+                        c.x,
+                        c.y,
+                        c.z
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     fn camera(&self, v: &Json, path: &str) -> Res<Camera> {
