@@ -175,10 +175,15 @@ impl Wavefront {
                 Some(est) if p.depth >= est.min_bounces && p.depth < m => {
                     est.intersect(&scene.accel, p.origin, p.dir, p.skip_instance, stats)
                 }
-                _ => scene
-                    .accel
-                    .intersect_skipping(p.origin, p.dir, f32::INFINITY, p.skip_instance)
-                    .map_or(Meet::Nothing, Meet::Surface),
+                // Only a path that has just left an estimator skips an
+                // instance, and only the estimator layout keeps it apart.
+                _ => if p.skip_instance == crate::accel::NO_SKIP {
+                    scene.plain()
+                } else {
+                    &scene.accel
+                }
+                .intersect_skipping(p.origin, p.dir, f32::INFINITY, p.skip_instance)
+                .map_or(Meet::Nothing, Meet::Surface),
             }
         }));
     }
@@ -305,7 +310,7 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
                     let light_eps = (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL)
                         .max(ls.offset_floor);
                     let tmax = ls.dist - light_eps;
-                    if tmax > 0.0 && !scene.accel.occluded(origin, ls.wi, tmax) {
+                    if tmax > 0.0 && !scene.plain().occluded(origin, ls.wi, tmax) {
                         let w = power_heuristic(ls.pdf, bsdf_pdf);
                         path.radiance += path.beta * f * ls.radiance * (w / ls.pdf);
                     }

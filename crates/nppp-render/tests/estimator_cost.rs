@@ -1,7 +1,9 @@
-//! The cost floor (`EstimatorMode::CostFloor`) is a timing instrument: the
-//! baked masks decide entries exactly as in a neural render, and every entry
-//! ends its path. These tests pin down both halves, since a floor that
-//! quietly continued its paths would make every bound drawn from it wrong.
+//! What a render with estimators pays for, checked where a mistake would
+//! only show as a wrong timing: the cost floor (`EstimatorMode::CostFloor`,
+//! a timing instrument: the baked masks decide entries exactly as in a
+//! neural render and every entry ends its path; a floor that quietly
+//! continued its paths would make every bound drawn from it wrong), and the
+//! plain layout that rays no estimator can serve must trace.
 
 mod common;
 use common::*;
@@ -81,4 +83,33 @@ fn floor_uses_the_same_mask_as_the_network() {
     assert!(fs.estimators.entries > 0);
     assert_eq!(fs.estimators.entries, ns.estimators.entries);
     assert_eq!(fs.estimators.mask_skips, ns.estimators.mask_skips);
+}
+
+/// Rays that cannot use an estimator trace the plain layout (the knot
+/// merged into the world BLAS): with P >= M no ray can, and the render with
+/// estimators attached is bit for bit plain path tracing's.
+#[test]
+fn with_p_at_least_m_every_ray_traces_the_plain_layout() {
+    let mut scene =
+        nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-box.json")).unwrap();
+    scene.camera.width = 32;
+    scene.camera.height = 32;
+    let opts = RenderOptions {
+        spp: 4,
+        max_bounces: 5,
+        seed: 9,
+        progress: false,
+    };
+    let pt = nppp_render::render(&RenderScene::new(&scene), &opts).0;
+    let mut rs = RenderScene::for_estimators(&scene);
+    assert!(rs.plain_accel.is_some());
+    rs.estimators = Estimators::load(&scene, EstimatorMode::Neural, 5).unwrap();
+    let (with, st) = nppp_render::render(&rs, &opts);
+    assert_eq!(st.estimators.entries, 0);
+    assert!(
+        pt.pixels
+            .iter()
+            .zip(&with.pixels)
+            .all(|(a, b)| a.map(f32::to_bits) == b.map(f32::to_bits))
+    );
 }
