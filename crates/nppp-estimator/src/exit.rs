@@ -158,6 +158,14 @@ impl ExitTransform {
         let throughput = Vec3::new(unlog(raw[6]), unlog(raw[7]), unlog(raw[8]));
         let radiance = Vec3::new(unlog(raw[9]), unlog(raw[10]), unlog(raw[11]));
         let b = unlog(raw[12]).round();
+        // Every material an estimator can learn (albedo and reflectance in
+        // [0, 1], dielectrics entered and left through the same medium)
+        // returns at most what entered, per channel: more is a broken or
+        // forged network, and would brighten the image without bound.
+        if throughput.max_element() > 1.01 {
+            clamped = true;
+        }
+        let throughput = throughput.min(Vec3::ONE);
         if clamped {
             repairs.clamped += 1;
         }
@@ -193,7 +201,7 @@ mod tests {
     proptest! {
         #[test]
         fn encode_decode_round_trips(
-            th in 0.0f32..1.0, ph in 0.0f32..std::f32::consts::TAU, t in 0.0f32..2.0, r in 0.0f32..100.0, b in 0u32..50
+            th in 0.0f32..1.0, ph in 0.0f32..std::f32::consts::TAU, t in 0.0f32..=1.0, r in 0.0f32..100.0, b in 0u32..50
         ) {
             let p = Vec3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos());
             let d = (p + Vec3::new(0.1, 0.2, 0.3)).normalize();
@@ -219,8 +227,19 @@ mod tests {
             prop_assert!((e.direction.length() - 1.0).abs() < 1e-4);
             prop_assert!(e.direction.dot(e.position) >= -1e-4);
             prop_assert!(e.throughput.is_finite() && e.throughput.min_element() >= 0.0);
+            prop_assert!(e.throughput.max_element() <= 1.0);
             prop_assert!(e.radiance.is_finite() && e.radiance.min_element() >= 0.0);
             prop_assert!(e.bounces <= 64);
         }
+    }
+
+    #[test]
+    fn throughput_above_one_is_clamped_and_counted() {
+        let tr = ExitTransform::default();
+        let e = Exit { position: Vec3::Z, direction: Vec3::Z, throughput: Vec3::new(5.0, 0.5, 1.0), radiance: Vec3::ZERO, bounces: 1 };
+        let mut rep = DecodeRepairs::default();
+        let back = tr.decode(&tr.encode(&e), 8, &mut rep);
+        assert_eq!(rep.clamped, 1);
+        assert!((back.throughput - Vec3::new(1.0, 0.5, 1.0)).abs().max_element() < 1e-5);
     }
 }

@@ -416,6 +416,18 @@ pub enum EstimatorLoadError {
         material: String,
         material_hash: u64,
     },
+    #[error(
+        "instances[{instance}].estimator: {file}: its bounding sphere (centre {center}, radius {radius}) does not fit mesh \"{mesh}\" (centre {mesh_center}, radius {mesh_radius}): the file is damaged or was made for other geometry"
+    )]
+    Sphere {
+        file: std::path::PathBuf,
+        instance: usize,
+        center: Vec3,
+        radius: f32,
+        mesh: String,
+        mesh_center: Vec3,
+        mesh_radius: f32,
+    },
 }
 
 /// Default internal bounce cap of the oracle (matches `nppp gen`).
@@ -484,6 +496,28 @@ impl Estimators {
                         });
                     }
                     let sphere = baked.meta.sphere;
+                    // The hashes match, so the sphere is the one `nppp gen`
+                    // put around this mesh, unless the file was forged or
+                    // damaged past its checksum: a sphere that does not
+                    // enclose the mesh, or dwarfs it, would render the object
+                    // in the wrong place or not at all.
+                    let own = BoundingSphere::around(&mesh.positions, SPHERE_MARGIN);
+                    let reach = sphere.radius * 1.001 + 1e-6 * sphere.center.abs().max_element();
+                    let encloses = mesh
+                        .positions
+                        .iter()
+                        .all(|p| p.distance(sphere.center) <= reach);
+                    if !encloses || sphere.radius > 4.0 * own.radius {
+                        return Err(EstimatorLoadError::Sphere {
+                            file: path.clone(),
+                            instance: ii,
+                            center: sphere.center,
+                            radius: sphere.radius,
+                            mesh: scene.mesh_names[inst.mesh].clone(),
+                            mesh_center: own.center,
+                            mesh_radius: own.radius,
+                        });
+                    }
                     let sampler = EstimatorSampler::try_new(baked).map_err(file_err)?;
                     let model = if mode == EstimatorMode::CostFloor {
                         EstimatorModel::CostFloor { sampler }
