@@ -224,6 +224,11 @@ impl Cx<'_> {
                     Err(self.invalid(path, format!("must be a non-negative integer, found {f}")))
                 } else if f.fract() != 0.0 {
                     Err(self.invalid(path, format!("must be an integer, found {f}")))
+                } else if f >= 18_446_744_073_709_551_616.0 {
+                    Err(self.invalid(
+                        path,
+                        format!("{f:e} is above 2^64 - 1, the largest integer accepted here"),
+                    ))
                 } else if f > 9_007_199_254_740_992.0 {
                     Err(self.invalid(
                         path,

@@ -47,7 +47,15 @@ pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
     // (first corner, corner count, line number)
     let mut faces: Vec<(usize, usize, usize)> = Vec::new();
 
-    for (i, raw) in text.lines().enumerate() {
+    // Classic Mac OS files end lines with a bare CR; `lines()` would see one
+    // long line (and no faces).
+    let bare_cr = !text.contains('\n') && text.contains('\r');
+    let lines: Vec<&str> = if bare_cr {
+        text.split('\r').collect()
+    } else {
+        text.lines().collect()
+    };
+    for (i, raw) in lines.into_iter().enumerate() {
         let line = i + 1;
         let content = raw.split('#').next().unwrap_or("");
         let mut tokens = content.split_whitespace();
@@ -195,9 +203,13 @@ fn parse_corner(
 }
 
 fn resolve(tok: &str, defined: usize, what: &str, line: usize) -> Result<usize, ObjError> {
-    let i: i64 = tok
-        .parse()
-        .map_err(|_| at(line, format!("{what} index `{tok}` is not an integer")))?;
+    let i: i64 = tok.parse().map_err(|e: std::num::ParseIntError| {
+        use std::num::IntErrorKind::{NegOverflow, PosOverflow};
+        match e.kind() {
+            PosOverflow | NegOverflow => at(line, format!("{what} index `{tok}` is too large")),
+            _ => at(line, format!("{what} index `{tok}` is not an integer")),
+        }
+    })?;
     if i > 0 {
         // Stored 0-based; the range check happens after the whole file is read.
         usize::try_from(i - 1).map_err(|_| at(line, format!("{what} index {i} is too large")))
@@ -252,7 +264,11 @@ fn face_normals(face: &[Corner], normals: &[Vec3], line: usize) -> Result<Vec<Ve
                     "the mesh is \"smooth\": true but this face has no vertex normals (use v//vn or v/vt/vn)",
                 )
             })?;
-            normals[vn].try_normalize().ok_or_else(|| {
+            // Scaled first: a finite normal near f32::MAX has an infinite
+            // squared length, and is a direction all the same.
+            let n = normals[vn];
+            let big = n.abs().max_element();
+            (n / big).try_normalize().ok_or_else(|| {
                 at(
                     line,
                     format!("normal {} has zero length and cannot be used for smooth shading", vn + 1),

@@ -75,7 +75,7 @@ pub enum Procedural {
 /// Why a [`Procedural`] can't be built.
 #[derive(Debug, thiserror::Error)]
 pub enum ProceduralError {
-    #[error("{name} would have {triangles} triangles, more than the limit of {MAX_TRIANGLES}")]
+    #[error("{name} would have {} triangles, more than the limit of {MAX_TRIANGLES}", count_text(*.triangles))]
     TooManyTriangles { name: String, triangles: u64 },
     #[error("{parameter} = {value} is invalid: {reason}")]
     InvalidParameter {
@@ -132,7 +132,8 @@ impl Procedural {
         }
     }
 
-    /// The number of triangles [`Procedural::build`] will produce, computed
+    /// The number of triangles [`Procedural::build`] will produce (saturating
+    /// at `u64::MAX`, which errors print as such), computed
     /// without building, so absurd parameters fail before allocating.
     pub fn triangle_count(&self) -> u64 {
         match *self {
@@ -1173,5 +1174,15 @@ mod tests {
                 start.elapsed().as_secs_f64()
             );
         }
+    }
+}
+
+/// A triangle count for an error message: the saturated count of absurd
+/// parameters is not a number anyone asked for.
+fn count_text(n: u64) -> String {
+    if n == u64::MAX {
+        "more than 1.8e19".to_owned()
+    } else {
+        n.to_string()
     }
 }

@@ -152,3 +152,24 @@ fn procedural_obj_export_round_trips_through_the_loader_bit_for_bit() {
     assert_eq!(m.positions, built.positions);
     assert_eq!(m.triangles, built.triangles);
 }
+
+#[test]
+fn bare_cr_line_endings_load_like_lf() {
+    let lf = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n";
+    let cr = lf.replace('\n', "\r");
+    let a = obj_mesh(lf, false).expect("LF loads");
+    let b = obj_mesh(&cr, false).expect("bare CR loads");
+    assert_eq!(a.positions, b.positions);
+    assert_eq!(a.triangles, b.triangles);
+}
+
+#[test]
+fn smooth_normals_near_f32_max_are_directions_not_zero() {
+    let text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 3e38 3e38 3e38\nf 1//1 2//1 3//1\n";
+    let m = obj_mesh(text, true).expect("loads");
+    let n = m.shading_normals.expect("smooth")[0][0];
+    assert!(
+        (n - glam::Vec3::splat(1.0 / 3f32.sqrt())).length() < 1e-6,
+        "{n}"
+    );
+}
