@@ -29,7 +29,7 @@ fn render(mode: EstimatorMode, p: u32) -> (nppp_render::Image, RenderStats) {
 }
 
 fn mean(img: &nppp_render::Image) -> f64 {
-    img.mean().iter().map(|&c| c as f64).sum()
+    img.mean().iter().sum()
 }
 
 #[test]

@@ -783,6 +783,16 @@ pub fn write_obj(mesh: &TriMesh, path: &Path) -> std::io::Result<()> {
     result
 }
 
+/// A triangle count for an error message: the saturated count of absurd
+/// parameters is not a number anyone asked for.
+fn count_text(n: u64) -> String {
+    if n == u64::MAX {
+        "more than 1.8e19".to_owned()
+    } else {
+        n.to_string()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1174,15 +1184,5 @@ mod tests {
                 start.elapsed().as_secs_f64()
             );
         }
-    }
-}
-
-/// A triangle count for an error message: the saturated count of absurd
-/// parameters is not a number anyone asked for.
-fn count_text(n: u64) -> String {
-    if n == u64::MAX {
-        "more than 1.8e19".to_owned()
-    } else {
-        n.to_string()
     }
 }
