@@ -71,6 +71,13 @@ fn single_threaded_gemm() {
     }
 }
 
+/// Whether `p` ends in `.ext` (any case): outputs are checked by name before
+/// any work, so a slip of the flags cannot write one format under another's name.
+fn has_extension(p: &std::path::Path, ext: &str) -> bool {
+    p.extension()
+        .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case(ext))
+}
+
 fn run(cli: Cli) -> Result<()> {
     if let Some(t) = cli.threads {
         anyhow::ensure!(t >= 1, "--threads must be at least 1");

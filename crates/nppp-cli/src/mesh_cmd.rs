@@ -21,9 +21,7 @@ pub struct MeshArgs {
 pub fn run(a: &MeshArgs) -> Result<()> {
     // A slip of the flags must not replace the scene (or an image) with OBJ text.
     anyhow::ensure!(
-        a.out
-            .extension()
-            .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case("obj")),
+        crate::has_extension(&a.out, "obj"),
         "--out {}: the output is a Wavefront OBJ; name it *.obj",
         a.out.display()
     );

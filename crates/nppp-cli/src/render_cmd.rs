@@ -101,10 +101,7 @@ fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
 /// The output paths are checked before rendering: a typo in `--out` must not
 /// cost the render, and an EXR must not be written under a `.png` name.
 fn check_outputs(a: &RenderArgs) -> Result<()> {
-    let has_ext = |p: &Path, ext: &str| {
-        p.extension()
-            .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case(ext))
-    };
+    let has_ext = crate::has_extension;
     anyhow::ensure!(
         has_ext(&a.out, "exr"),
         "--out {}: the output is an OpenEXR image; name it *.exr",

@@ -36,3 +36,9 @@ impl Ray {
 pub fn luminance(c: Vec3) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
+
+/// [`luminance`] in f64, for sums that must not overflow (a light's power,
+/// area times luminance, passes f32::MAX for a 1e38 lamp).
+pub fn luminance_f64(c: Vec3) -> f64 {
+    0.2126 * c.x as f64 + 0.7152 * c.y as f64 + 0.0722 * c.z as f64
+}

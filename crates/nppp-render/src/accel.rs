@@ -216,6 +216,25 @@ fn transformed_bounds(x: &InstanceXform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
 }
 
 impl Accel {
+    /// Which instances [`Self::build`] merges into the world BLAS: those of
+    /// meshes used once, unless `keep_separate` says otherwise (a mesh used
+    /// by many instances keeps one shared BLAS).
+    pub fn merge_plan(
+        mesh_count: usize,
+        instances: &[(usize, Transform)],
+        keep_separate: &[bool],
+    ) -> Vec<bool> {
+        let mut uses = vec![0usize; mesh_count];
+        for (m, _) in instances {
+            uses[*m] += 1;
+        }
+        instances
+            .iter()
+            .enumerate()
+            .map(|(i, (m, _))| uses[*m] == 1 && !keep_separate.get(i).copied().unwrap_or(false))
+            .collect()
+    }
+
     /// Builds the BLASes (in parallel) and the TLAS. `keep_separate[i]` keeps
     /// instance `i` out of the merged BLAS.
     pub fn build(
@@ -228,15 +247,7 @@ impl Accel {
             .iter()
             .map(|(m, t)| InstanceXform::new(*m as u32, t))
             .collect();
-        let mut uses = vec![0usize; meshes.len()];
-        for (m, _) in instances {
-            uses[*m] += 1;
-        }
-        let merge: Vec<bool> = instances
-            .iter()
-            .enumerate()
-            .map(|(i, (m, _))| uses[*m] == 1 && !keep_separate.get(i).copied().unwrap_or(false))
-            .collect();
+        let merge = Self::merge_plan(meshes.len(), instances, keep_separate);
         // A mesh whose only instance is merged needs no BLAS of its own.
         let needs_blas: Vec<bool> = (0..meshes.len())
             .map(|m| {

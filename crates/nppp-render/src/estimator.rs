@@ -149,7 +149,8 @@ impl Estimators {
             if let Some(ei) = self.per_instance[inst as usize] {
                 let x = &accel.instances[inst as usize];
                 let est = &self.list[ei as usize];
-                let uo = est.sphere.to_unit_point(x.point_to_object(o));
+                let oo = x.point_to_object(o);
+                let uo = est.sphere.to_unit_point(oo);
                 // A ray from inside the sphere never uses it: trace the mesh.
                 if uo.length_squared() > 1.0 {
                     let od = x.dir_to_object(d);
@@ -164,8 +165,7 @@ impl Estimators {
                     // certainly misses the mesh: no mask lookup (two memory
                     // misses in an 8 MiB grid) for what geometry already
                     // knows. The mask judges only rays that could hit.
-                    if !accel.blas[x.blas as usize].may_hit(x.point_to_object(o).into(), od.into())
-                    {
+                    if !accel.blas[x.blas as usize].may_hit(oo.into(), od.into()) {
                         stats.mask_skips += 1;
                         return f32::INFINITY;
                     }

@@ -3,7 +3,7 @@
 //! power (area times luminance of its radiance).
 
 use glam::{Vec2, Vec3};
-use nppp_geom::sampling::uniform_triangle;
+use nppp_geom::{luminance_f64, sampling::uniform_triangle};
 
 #[derive(Clone, Copy, Debug)]
 pub struct LightTriangle {
@@ -49,10 +49,7 @@ impl Lights {
         for t in &triangles {
             // In f64: a 1e38 lamp's power overflows f32, and an infinite
             // weight below would silently drop the light from NEE.
-            let w = t.area as f64
-                * (0.2126 * t.radiance.x as f64
-                    + 0.7152 * t.radiance.y as f64
-                    + 0.0722 * t.radiance.z as f64);
+            let w = t.area as f64 * luminance_f64(t.radiance);
             total += if w.is_finite() && w > 0.0 { w } else { 0.0 };
             cdf.push(total);
         }

@@ -95,18 +95,10 @@ impl RenderScene {
             .iter()
             .map(|i| keep_estimator_instances && i.estimator.is_some())
             .collect();
-        // Merging a once-used mesh is what `Accel::build` does unless told to
-        // keep it apart; where an estimator instance would have been merged,
-        // rays that cannot use an estimator get that faster layout too.
-        let mut uses = vec![0usize; scene.meshes.len()];
-        for i in &scene.instances {
-            uses[i.mesh] += 1;
-        }
-        let layouts_differ = scene
-            .instances
-            .iter()
-            .zip(&keep)
-            .any(|(i, k)| *k && uses[i.mesh] == 1);
+        // Where keeping estimator instances apart changes what is merged,
+        // rays that cannot use an estimator get the merged layout too.
+        let layouts_differ = Accel::merge_plan(scene.meshes.len(), &inst, &keep)
+            != Accel::merge_plan(scene.meshes.len(), &inst, &[]);
         let (accel, plain_accel) = if layouts_differ {
             let (a, p) = rayon::join(
                 || Accel::build(&scene.meshes, &inst, &keep),
