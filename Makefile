@@ -22,7 +22,9 @@ ESTIMATOR := models/cornell-knot.nppp
 # 1 M rays (about 1 minute, 207 MiB), 24000 training steps (about 15-18
 # minutes on 2 cores; --minutes 0 keeps the run bit-reproducible), latent
 # grid 32^4 at 4 bits and mask grid 64^4 at 4 bits (16 MiB in all).
-GEN_FLAGS ?= --rays 1000000 --k 64 --seed 0
+# `nppp gen`'s and `nppp train`'s defaults are that recipe
+# (nppp-estimator/src/recipe.rs): 1 M rays, k = 64.
+GEN_FLAGS ?= --seed 0
 TRAIN_FLAGS ?= --seed 1 --minutes 0
 BAKE_FLAGS ?= --latent-grid 32 --bits 4 --mask-grid 64 --mask-bits 4
 P ?= 2

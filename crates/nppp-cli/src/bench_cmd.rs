@@ -431,9 +431,10 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut scene = nppp_scene::load_scene(path)?;
     let hash = scene_hash(path, &scene)?;
-    let (w0, h0) = (scene.camera.width, scene.camera.height);
-    scene.camera.width = ((w0 as f64 * plan.scale).round() as u32).max(1);
-    scene.camera.height = ((h0 as f64 * plan.scale).round() as u32).max(1);
+    scene
+        .camera
+        .resize(Some(plan.scale), None, None)
+        .map_err(anyhow::Error::msg)?;
     let (width, height) = (scene.camera.width, scene.camera.height);
     let m = a.max_bounces;
 
@@ -1548,7 +1549,7 @@ fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
         *cell = (cell.0 + secs, cell.1 + err, cell.2 + 1);
     }
     ensure!(!scenes.is_empty(), "{}: no rows", csv.display());
-    register_font().map_err(|e| anyhow::anyhow!(e))?;
+    crate::plot::register_font().map_err(|e| anyhow::anyhow!(e))?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     for (name, ((w, h), configs)) in &scenes {
         let mmax = configs
@@ -1729,45 +1730,6 @@ where
     Ok(())
 }
 
-/// Registers a system TrueType font for the plots' text (plotters draws text
-/// with ab_glyph, which needs the font's bytes). `NPPP_FONT` overrides.
-fn register_font() -> Result<(), String> {
-    static DONE: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
-    DONE.get_or_init(|| {
-        let mut candidates: Vec<PathBuf> = std::env::var_os("NPPP_FONT")
-            .map(PathBuf::from)
-            .into_iter()
-            .collect();
-        for p in [
-            "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-            "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-            "/usr/share/fonts/TTF/DejaVuSans.ttf",
-            "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-            "/usr/share/fonts/liberation-sans/LiberationSans-Regular.ttf",
-            "/System/Library/Fonts/Supplemental/Arial.ttf",
-            "C:\\Windows\\Fonts\\arial.ttf",
-        ] {
-            candidates.push(PathBuf::from(p));
-        }
-        for p in candidates {
-            if let Ok(bytes) = std::fs::read(&p) {
-                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                if plotters::style::register_font(
-                    "sans-serif",
-                    plotters::style::FontStyle::Normal,
-                    bytes,
-                )
-                .is_ok()
-                {
-                    return Ok(());
-                }
-            }
-        }
-        Err("no TrueType font found (set NPPP_FONT=/path/to/font.ttf)".into())
-    })
-    .clone()
-}
-
 /// Writes `<out>/<scene>.svg` and `.png`; returns what was written (or why not).
 fn plot_scene(r: &SceneResult, out: &Path) -> Result<Vec<String>> {
     use plotters::prelude::*;
@@ -1775,7 +1737,7 @@ fn plot_scene(r: &SceneResult, out: &Path) -> Result<Vec<String>> {
     if cs.is_empty() {
         return Ok(vec![format!("{}: nothing to plot", r.name)]);
     }
-    if let Err(e) = register_font() {
+    if let Err(e) = crate::plot::register_font() {
         return Ok(vec![format!("{}: plots skipped: {e}", r.name)]);
     }
     let title = format!("{}: time vs relMSE ({}x{})", r.name, r.width, r.height);

@@ -5,7 +5,7 @@
 //! yet. Either way the estimator lives in mesh space, so an instance's
 //! transform is ignored: one data set serves every instance of the object.
 
-use anyhow::{Context, Result, bail, ensure};
+use anyhow::{Context, Result, anyhow, bail, ensure};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use nppp_estimator::WriterOptions;
@@ -18,7 +18,7 @@ use nppp_scene::{Mesh, Scene, SceneError};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-/// The thesis' data set size, used for the projection printed at the end.
+/// The thesis' data set, for the size projection printed after a run.
 const THESIS_RAYS: u64 = 200_000;
 const THESIS_K: u64 = 512;
 
@@ -62,11 +62,13 @@ pub struct GenArgs {
     /// '{"type": "diffuse", "albedo": [0.8, 0.6, 0.35]}', or a preset: white, gold, mirror, glass.
     #[arg(long, requires = "mesh")]
     pub material: Option<String>,
-    /// Input rays, uniform in the 4D sphere-pair parameterization.
-    #[arg(long, default_value_t = THESIS_RAYS)]
+    /// Input rays, uniform in the 4D sphere-pair parameterization (the
+    /// default is the recipe of the committed estimators).
+    #[arg(long, default_value_t = nppp_estimator::recipe::DEFAULT_RAYS)]
     pub rays: u64,
-    /// Exits traced per input ray that hits the object.
-    #[arg(long, default_value_t = THESIS_K as u32)]
+    /// Exits traced per input ray that hits the object (`nppp train` uses
+    /// this many per step by default).
+    #[arg(long, default_value_t = nppp_estimator::recipe::DEFAULT_K)]
     pub k: u32,
     /// Seed of every random stream: the file is a function of the object,
     /// the flags and this seed, whatever the thread count.
@@ -106,9 +108,21 @@ pub fn run(a: &GenArgs) -> Result<()> {
         "--out {}: is a directory; give a file name",
         a.out.display()
     );
+    ensure!(
+        crate::has_extension(&a.out, "nppd"),
+        "--out {}: training data is named *.nppd (gen never writes under another extension, so \
+         a slip cannot overwrite a scene, a mesh or an estimator)",
+        a.out.display()
+    );
+    nppp_files::check_writable(&a.out).map_err(|e| anyhow!("--out {}: {e}", a.out.display()))?;
     let t0 = Instant::now();
-    let obj = load_object(a)?;
+    let (obj, inputs) = load_object(a)?;
     let build = t0.elapsed().as_secs_f64();
+    let inputs: Vec<(&str, &Path)> = inputs
+        .iter()
+        .map(|(w, p)| (w.as_str(), p.as_path()))
+        .collect();
+    nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("--out {}: cannot create its folder", a.out.display()))?;
@@ -183,11 +197,26 @@ pub fn run(a: &GenArgs) -> Result<()> {
     }
     println!(
         "  file        {} in {} chunks, {:.2} bytes/exit ({:.2} before compression)",
-        human_bytes(sum.file_bytes),
+        nppp_files::format_bytes(sum.file_bytes),
         sum.chunks,
         sum.bytes_per_exit(),
         sum.raw_bytes as f64 / st.exits.max(1) as f64
     );
+    if st.exits > 0 && st.zero_exits == st.exits {
+        eprintln!(
+            "warning: every one of the {} exits has zero throughput: the material absorbs all \
+             light or is an emitter (which reflects nothing). An estimator trained on this data \
+             renders the object black; pick a reflecting instance",
+            st.exits
+        );
+    } else if st.exits > 0 && st.capped_exits as f64 > 0.05 * st.exits as f64 {
+        eprintln!(
+            "warning: {:.0}% of the exits stopped at the cap of {} internal bounces and count as \
+             absorbed: raise --max-internal-bounces",
+            100.0 * st.capped_exits as f64 / st.exits as f64,
+            a.max_internal_bounces
+        );
+    }
     if st.repaired_exits > 0 {
         eprintln!(
             "warning: {} exits had a non-finite throughput or radiance and were stored as zero (a BSDF bug)",
@@ -199,7 +228,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
         println!(
             "  projection  {THESIS_RAYS} rays x k = {THESIS_K}: {:.1} M exits, {} and {:.1} min at this rate",
             exits / 1e6,
-            human_bytes((exits * sum.bytes_per_exit()) as u64),
+            nppp_files::format_bytes((exits * sum.bytes_per_exit()) as u64),
             exits / st.exits_per_second() / 60.0
         );
     }
@@ -266,23 +295,28 @@ fn progress_bar(rays: u64, quiet: bool) -> ProgressBar {
     bar
 }
 
-fn human_bytes(b: u64) -> String {
-    let b = b as f64;
-    match b {
-        _ if b >= (1u64 << 30) as f64 => format!("{:.2} GiB", b / (1u64 << 30) as f64),
-        _ if b >= (1u64 << 20) as f64 => format!("{:.1} MiB", b / (1u64 << 20) as f64),
-        _ if b >= 1024.0 => format!("{:.1} KiB", b / 1024.0),
-        _ => format!("{b} bytes"),
-    }
-}
-
-/// The object named by the flags.
-fn load_object(a: &GenArgs) -> Result<GenObject> {
+/// The object named by the flags, and the files it was read from (which
+/// `--out` must not name).
+fn load_object(a: &GenArgs) -> Result<(GenObject, Vec<(String, PathBuf)>)> {
     if let Some(path) = &a.scene {
         let scene = nppp_scene::load_scene(path)?;
         let index = a.instance.context("--scene needs --instance N")?;
-        return Ok(GenObject::from_scene_instance(&scene, index)?);
+        return Ok((
+            GenObject::from_scene_instance(&scene, index)?,
+            scene.input_files(),
+        ));
     }
+    let mut inputs = Vec::new();
+    if let Some(m) = &a.mesh
+        && Path::new(m).is_file()
+    {
+        inputs.push(("the --mesh OBJ file".to_string(), PathBuf::from(m)));
+    }
+    Ok((load_flag_object(a)?, inputs))
+}
+
+/// The object named by --mesh and --material.
+fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
     let (Some(mesh), Some(material)) = (&a.mesh, &a.material) else {
         bail!("name the object with --scene FILE --instance N, or with --mesh and --material");
     };

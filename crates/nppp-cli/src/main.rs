@@ -4,6 +4,7 @@
 mod bench_cmd;
 mod gen_cmd;
 mod mesh_cmd;
+mod plot;
 mod render_cmd;
 
 use anyhow::Result;
@@ -16,28 +17,60 @@ use clap::{Parser, Subcommand};
     about = "Path tracing with neural probabilistic path prediction"
 )]
 struct Cli {
-    /// Worker threads (default: all cores).
-    #[arg(long, global = true)]
-    threads: Option<usize>,
     #[command(subcommand)]
     command: Command,
+}
+
+/// `--threads`, on the subcommands whose work runs on the thread pool.
+#[derive(clap::Args)]
+struct Threads {
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
 }
 
 #[derive(Subcommand)]
 enum Command {
     /// Render a scene to an EXR (and optionally a PNG preview).
-    Render(render_cmd::RenderArgs),
+    Render {
+        #[command(flatten)]
+        args: render_cmd::RenderArgs,
+        #[command(flatten)]
+        threads: Threads,
+    },
     /// Generate estimator training data: path-trace one object alone.
-    Gen(gen_cmd::GenArgs),
+    Gen {
+        #[command(flatten)]
+        args: gen_cmd::GenArgs,
+        #[command(flatten)]
+        threads: Threads,
+    },
     /// Train an estimator (Burn) on data from `nppp gen`.
-    Train(nppp_nn::TrainOptions),
+    Train {
+        #[command(flatten)]
+        args: nppp_nn::TrainOptions,
+        #[command(flatten)]
+        threads: Threads,
+    },
     /// Bake a trained model into a quantized `.nppp` estimator.
-    Bake(nppp_nn::BakeOptions),
+    Bake {
+        #[command(flatten)]
+        args: nppp_nn::BakeOptions,
+        #[command(flatten)]
+        threads: Threads,
+    },
     /// Write a scene's mesh (e.g. a procedural object) as an OBJ.
     Mesh(mesh_cmd::MeshArgs),
     /// Time against error: PT at M = 1..5 and PT + NPPP at P = 0..3 against a
     /// cached high-spp reference; writes a Markdown table, CSV and plots.
-    Bench(bench_cmd::BenchArgs),
+    Bench {
+        #[command(flatten)]
+        args: bench_cmd::BenchArgs,
+        #[command(flatten)]
+        threads: Threads,
+    },
+    /// Draw the training curves of a model directory's log.csv (SVG or PNG).
+    PlotLog(plot::PlotLogArgs),
     /// Print what a `.nppp` estimator holds and its memory.
     Info {
         /// The `.nppp` file.
@@ -47,7 +80,7 @@ enum Command {
 
 fn main() {
     let cli = Cli::parse();
-    if matches!(cli.command, Command::Render(_) | Command::Bench(_)) {
+    if matches!(cli.command, Command::Render { .. } | Command::Bench { .. }) {
         single_threaded_gemm();
     }
     if let Err(e) = run(cli) {
@@ -78,37 +111,97 @@ fn has_extension(p: &std::path::Path, ext: &str) -> bool {
         .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case(ext))
 }
 
-fn run(cli: Cli) -> Result<()> {
-    if let Some(t) = cli.threads {
-        anyhow::ensure!(t >= 1, "--threads must be at least 1");
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(t)
-            .build_global()?;
-    }
-    match cli.command {
-        Command::Render(a) => render_cmd::run(&a),
-        Command::Gen(a) => gen_cmd::run(&a),
-        Command::Bench(a) => bench_cmd::run(&a),
-        Command::Train(o) => {
-            let r = nppp_nn::train(&o)?;
-            eprintln!("{r:#?}");
-            Ok(())
+impl Threads {
+    /// Sizes the global thread pool (rayon: the renderer, data generation
+    /// and Burn's CPU backends all run on it).
+    fn install(&self) -> Result<()> {
+        if let Some(t) = self.threads {
+            anyhow::ensure!(t >= 1, "--threads must be at least 1");
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build_global()?;
         }
-        Command::Bake(o) => {
-            let r = nppp_nn::bake(&o)?;
-            eprintln!("{r:#?}");
-            Ok(())
+        Ok(())
+    }
+}
+
+/// Ctrl-C or SIGTERM during training: the loop saves a checkpoint after the
+/// current step and `nppp train` exits with status 1, saying how to resume.
+/// Before the loop (reading data) or at a second signal it exits at once
+/// (status 130): every file it writes is replaced atomically, so nothing is
+/// left half-written.
+fn stop_training_on_interrupt() -> Result<()> {
+    ctrlc::set_handler(|| {
+        if nppp_nn::in_training_loop() && !nppp_nn::stop_requested() {
+            eprintln!("\ninterrupt: saving a checkpoint after this step (again to quit at once)");
+            nppp_nn::request_stop();
+        } else {
+            eprintln!("\ninterrupted");
+            std::process::exit(130);
+        }
+    })
+    .map_err(|e| anyhow::anyhow!("cannot install the interrupt handler: {e}"))
+}
+
+/// A command's summary on stdout (a closed pipe is the reader's choice, not
+/// a failure of the command).
+fn print_summary(r: &impl std::fmt::Display) -> Result<()> {
+    use std::io::Write;
+    match writeln!(std::io::stdout(), "{r}") {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+        _ => Ok(()),
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Render { args, threads } => {
+            threads.install()?;
+            render_cmd::run(&args)
+        }
+        Command::Gen { args, threads } => {
+            threads.install()?;
+            gen_cmd::run(&args)
+        }
+        Command::Bench { args, threads } => {
+            threads.install()?;
+            bench_cmd::run(&args)
+        }
+        Command::Train { args, threads } => {
+            threads.install()?;
+            stop_training_on_interrupt()?;
+            let r = nppp_nn::train(&args)?;
+            print_summary(&r)?;
+            // The curves beside the log; a machine without a font still
+            // has the CSV and `nppp plot-log`.
+            match plot::plot_training_log(&r.model_dir, None) {
+                Ok(files) => {
+                    let names: Vec<String> =
+                        files.iter().map(|f| f.display().to_string()).collect();
+                    print_summary(&format!("  curves      {}", names.join(", ")))
+                }
+                Err(e) => {
+                    eprintln!("note: training curves not drawn: {e:#}");
+                    Ok(())
+                }
+            }
+        }
+        Command::Bake { args, threads } => {
+            threads.install()?;
+            let r = nppp_nn::bake(&args)?;
+            print_summary(&r)
         }
         Command::Mesh(a) => mesh_cmd::run(&a),
+        Command::PlotLog(a) => {
+            let files = plot::plot_training_log(&a.log, a.out.as_deref())?;
+            for f in files {
+                print_summary(&f.display())?;
+            }
+            Ok(())
+        }
         Command::Info { file } => {
             let b = nppp_estimator::BakedEstimator::load(&file)?;
-            // Not println!: a closed pipe (`nppp info f | head -1`) is the
-            // reader's choice, not a crash.
-            use std::io::Write;
-            match writeln!(std::io::stdout(), "{}", b.describe()) {
-                Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
-                _ => Ok(()),
-            }
+            print_summary(&b.describe())
         }
     }
 }

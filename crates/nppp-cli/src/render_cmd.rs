@@ -25,6 +25,28 @@ pub struct RenderArgs {
     /// Also write an sRGB PNG preview here.
     #[arg(long)]
     pub png: Option<PathBuf>,
+    /// Exposure of the PNG preview in stops (radiance x 2^EV); the EXR
+    /// stays linear.
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        allow_negative_numbers = true,
+        requires = "png"
+    )]
+    pub exposure: f32,
+    /// Tone curve of the PNG preview: clamp (values above 1 clip) or filmic
+    /// (ACES fit: highlights roll off).
+    #[arg(long, value_enum, default_value_t = TonemapChoice::Clamp, requires = "png")]
+    pub tonemap: TonemapChoice,
+    /// Multiply the scene's image size by this (as `nppp bench --scale`).
+    #[arg(long, conflicts_with_all = ["width", "height"])]
+    pub scale: Option<f64>,
+    /// Image width in pixels (alone: the height follows the aspect ratio).
+    #[arg(long)]
+    pub width: Option<u32>,
+    /// Image height in pixels (alone: the width follows the aspect ratio).
+    #[arg(long)]
+    pub height: Option<u32>,
     /// P: use estimators once a path has made at least this many bounces
     /// (overrides render.estimator_min_bounces).
     #[arg(long)]
@@ -48,6 +70,12 @@ pub struct RenderArgs {
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TonemapChoice {
+    Clamp,
+    Filmic,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -100,7 +128,21 @@ fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
 
 /// The output paths are checked before rendering: a typo in `--out` must not
 /// cost the render, and an EXR must not be written under a `.png` name.
-fn check_outputs(a: &RenderArgs) -> Result<()> {
+/// Neither output may name an input (the reference, the scene, its meshes
+/// or estimators): the render would replace it.
+fn check_outputs(a: &RenderArgs, scene: &nppp_scene::Scene) -> Result<()> {
+    let mut inputs = scene.input_files();
+    if let Some(r) = &a.reference {
+        inputs.push(("the --reference image".to_string(), r.clone()));
+    }
+    let inputs: Vec<(&str, &Path)> = inputs
+        .iter()
+        .map(|(w, p)| (w.as_str(), p.as_path()))
+        .collect();
+    nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
+    if let Some(p) = &a.png {
+        nppp_files::ensure_not_input("--png", p, &inputs).map_err(anyhow::Error::msg)?;
+    }
     let has_ext = crate::has_extension;
     anyhow::ensure!(
         has_ext(&a.out, "exr"),
@@ -115,7 +157,7 @@ fn check_outputs(a: &RenderArgs) -> Result<()> {
             p.display()
         );
         anyhow::ensure!(
-            p != &a.out,
+            !nppp_files::same_file(p, &a.out),
             "--png and --out are the same file ({})",
             p.display()
         );
@@ -125,7 +167,16 @@ fn check_outputs(a: &RenderArgs) -> Result<()> {
 }
 
 pub fn run(a: &RenderArgs) -> Result<()> {
-    let scene = nppp_scene::load_scene(&a.scene)?;
+    let mut scene = nppp_scene::load_scene(&a.scene)?;
+    scene
+        .camera
+        .resize(a.scale, a.width, a.height)
+        .map_err(anyhow::Error::msg)?;
+    anyhow::ensure!(
+        a.exposure.is_finite() && a.exposure.abs() <= 64.0,
+        "--exposure {}: give stops between -64 and 64",
+        a.exposure
+    );
     // Read the reference first: a bad reference should fail before minutes of rendering.
     let reference = match &a.reference {
         Some(p) => {
@@ -165,7 +216,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             scene.camera.height
         );
     }
-    check_outputs(a)?;
+    check_outputs(a, &scene)?;
     let mut settings = scene.render;
     if let Some(s) = a.spp {
         anyhow::ensure!(s >= 1, "--spp must be at least 1");
@@ -179,6 +230,17 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     }
     if let Some(p) = a.min_bounces {
         settings.estimator_min_bounces = p;
+    }
+    let has_estimators = scene.instances.iter().any(|i| i.estimator.is_some());
+    if has_estimators
+        && a.estimators != EstimatorChoice::Off
+        && settings.estimator_min_bounces >= settings.max_bounces
+    {
+        eprintln!(
+            "warning: P = {} >= M = {}: no path can reach an estimator after P bounces, so this \
+             render is plain path tracing (lower --min-bounces to use the estimators)",
+            settings.estimator_min_bounces, settings.max_bounces
+        );
     }
     let t0 = std::time::Instant::now();
     let mode = match a.estimators {
@@ -212,7 +274,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     let (img, stats) = nppp_render::render(&rs, &opts);
     image_io::write_exr(&img, &a.out).with_context(|| "writing the EXR")?;
     if let Some(p) = &a.png {
-        image_io::write_png(&img, p)?;
+        let preview = image_io::Preview {
+            exposure_ev: a.exposure,
+            tonemap: match a.tonemap {
+                TonemapChoice::Clamp => image_io::Tonemap::Clamp,
+                TonemapChoice::Filmic => image_io::Tonemap::Filmic,
+            },
+        };
+        image_io::write_png_with(&img, p, &preview)?;
     }
     let m = img.mean();
     if let Some(e) = &rs.estimators {
@@ -231,6 +300,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             st.repairs.inward,
             st.repairs.clamped
         );
+        for w in estimator_warnings(st) {
+            eprintln!("warning: {w}");
+        }
     }
     eprintln!(
         "{}: {}x{} spp {} M {} in {:.2}s (scene build {:.2}s), {:.3} M samples/s, mean rgb [{:.4} {:.4} {:.4}]{}",
@@ -275,4 +347,66 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Share of entries above which a repair count means the estimator is
+/// probably wrong for this object (a well-trained one repairs well under 1%).
+const SUSPICIOUS_REPAIR_SHARE: f64 = 0.05;
+
+/// What a render's estimator counts say about the result, when it is
+/// probably wrong, with what to do.
+fn estimator_warnings(st: &nppp_render::estimator::EstimatorStats) -> Vec<String> {
+    let mut w = Vec::new();
+    if st.entries == 0 {
+        return w;
+    }
+    let share = |n: u64| n as f64 / st.entries as f64;
+    if share(u64::from(st.repairs.clamped)) > SUSPICIOUS_REPAIR_SHARE {
+        w.push(format!(
+            "{} of {} estimator exits ({:.0}%) had a throughput above 1 and were clamped: the \
+             estimator is undertrained or was not made for this object; the image is probably \
+             too bright or too dark there. Train longer, or check it with `nppp info FILE`",
+            st.repairs.clamped,
+            st.entries,
+            100.0 * share(u64::from(st.repairs.clamped))
+        ));
+    }
+    let bad = u64::from(st.repairs.degenerate) + u64::from(st.repairs.inward);
+    if share(bad) > SUSPICIOUS_REPAIR_SHARE {
+        w.push(format!(
+            "{bad} of {} estimator exits ({:.0}%) were degenerate or pointed inward and were \
+             repaired: the decoder is poorly trained",
+            st.entries,
+            100.0 * share(bad)
+        ));
+    }
+    w
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn warnings_follow_the_repair_share() {
+        let mut st = nppp_render::estimator::EstimatorStats {
+            entries: 25_551,
+            ..Default::default()
+        };
+        assert!(estimator_warnings(&st).is_empty());
+        st.repairs.clamped = 100;
+        assert!(estimator_warnings(&st).is_empty(), "0.4% is normal");
+        st.repairs.clamped = 21_736;
+        let w = estimator_warnings(&st);
+        assert_eq!(w.len(), 1);
+        assert!(
+            w[0].contains("85%") && w[0].contains("Train longer"),
+            "{}",
+            w[0]
+        );
+        st.repairs.inward = 5_000;
+        assert_eq!(estimator_warnings(&st).len(), 2);
+        st.entries = 0;
+        assert!(estimator_warnings(&st).is_empty());
+    }
 }

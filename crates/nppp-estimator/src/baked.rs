@@ -14,7 +14,6 @@ use crate::quant;
 use nppp_geom::{BoundingSphere, Vec3};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -180,39 +179,8 @@ fn read_u32(b: &[u8], at: usize) -> Option<u32> {
     b.get(at..at + 4).map(|s| u32::from_le_bytes([s[0], s[1], s[2], s[3]]))
 }
 
-/// Writes `bytes` to `path` through a temporary file in the same folder and
-/// a rename, so that an interrupted write never replaces a good file with a
-/// half-written one.
-pub(crate) fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let tmp = temp_path(path);
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
-}
-
-/// `dir/.name.<pid>.tmp`: same folder (rename must not cross filesystems),
-/// hidden and unique per process.
-pub(crate) fn temp_path(path: &Path) -> PathBuf {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
-    path.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
-}
-
 fn fmt_bytes(b: usize) -> String {
-    if b >= 1 << 20 {
-        format!("{:.2} MiB", b as f64 / (1u64 << 20) as f64)
-    } else if b >= 1 << 10 {
-        format!("{:.2} KiB", b as f64 / 1024.0)
-    } else {
-        format!("{b} B")
-    }
+    nppp_files::format_bytes(b as u64)
 }
 
 impl BakedEstimator {
@@ -341,7 +309,7 @@ impl BakedEstimator {
 
     pub fn save(&self, path: &Path) -> Result<(), EstimatorFileError> {
         self.check().map_err(|what| EstimatorFileError::Invalid { path: path.into(), what: format!("refusing to save: {what}") })?;
-        write_atomically(path, &self.to_bytes()).map_err(|err| EstimatorFileError::Io { path: path.into(), err })
+        nppp_files::write_atomic(path, &self.to_bytes()).map_err(|err| EstimatorFileError::Io { path: path.into(), err })
     }
 
     pub fn load(path: &Path) -> Result<Self, EstimatorFileError> {

@@ -12,7 +12,7 @@ use crate::exit::Exit;
 use nppp_geom::{BoundingSphere, SpherePair, Vec3};
 use serde::{Deserialize, Serialize};
 use std::fs::File;
-use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::io::{BufReader, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -132,33 +132,11 @@ pub fn f32_to_f16(x: f32) -> u16 {
     if x.is_nan() || x <= 0.0 {
         return 0;
     }
-    if x >= 65504.0 {
-        return 0x7bff;
-    }
-    if x < 6.103_515_6e-5 {
-        // Subnormal half: units of 2^-24; 1024 units is the smallest normal.
-        return (x * 16_777_216.0).round_ties_even() as u16;
-    }
-    let a = x.to_bits();
-    let mant = a & 0x7f_ffff;
-    let exp = (a >> 23) + 15 - 127;
-    let mut h = (exp << 10) | (mant >> 13);
-    let rem = mant & 0x1fff;
-    if rem > 0x1000 || (rem == 0x1000 && h & 1 == 1) {
-        h += 1;
-    }
-    h as u16
+    half::f16::from_f32(x.min(65504.0)).to_bits()
 }
 
 pub fn f16_to_f32(h: u16) -> f32 {
-    let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };
-    let exp = ((h >> 10) & 0x1f) as u32;
-    let mant = (h & 0x3ff) as u32;
-    match exp {
-        0 => sign * mant as f32 * (1.0 / 16_777_216.0),
-        31 => sign * if mant == 0 { f32::INFINITY } else { f32::NAN },
-        _ => sign * f32::from_bits(((exp + 112) << 23) | (mant << 13)),
-    }
+    half::f16::from_bits(h).to_f32()
 }
 
 #[inline]
@@ -417,8 +395,7 @@ fn check_header(h: &DatasetHeader) -> Result<(), String> {
 
 pub struct DatasetWriter {
     path: PathBuf,
-    tmp: PathBuf,
-    file: Option<BufWriter<File>>,
+    file: Option<nppp_files::AtomicFile>,
     header: DatasetHeader,
     options: WriterOptions,
     bounce_width: usize,
@@ -440,9 +417,8 @@ impl DatasetWriter {
     /// complete (and never destroys the previous good one).
     pub fn create_with(path: &Path, header: DatasetHeader, options: WriterOptions) -> Result<Self, DatasetError> {
         check_header(&header).map_err(|what| DatasetError::Header { path: path.into(), what })?;
-        let tmp = crate::baked::temp_path(path);
         let io = |err| DatasetError::Io { path: path.into(), err };
-        let mut file = BufWriter::with_capacity(1 << 20, File::create(&tmp).map_err(io)?);
+        let mut file = nppp_files::AtomicFile::create(path).map_err(io)?;
         let json = header_bytes(&header);
         let mut prefix = Vec::with_capacity(20 + json.len());
         prefix.extend_from_slice(&DATASET_MAGIC);
@@ -456,7 +432,6 @@ impl DatasetWriter {
         let options = WriterOptions { chunk_rays: options.chunk_rays.clamp(1, MAX_CHUNK_RAYS), ..options };
         Ok(Self {
             path: path.into(),
-            tmp,
             file: Some(file),
             header,
             options,
@@ -571,15 +546,9 @@ impl DatasetWriter {
         let done = (|| {
             let mut f = f;
             f.write_all(&tail)?;
-            let file = f.into_inner().map_err(|e| e.into_error())?;
-            file.sync_all()?;
-            drop(file);
-            std::fs::rename(&self.tmp, &self.path)
+            f.commit()
         })();
-        if let Err(e) = done {
-            let _ = std::fs::remove_file(&self.tmp);
-            return Err(io(e));
-        }
+        done.map_err(io)?;
         Ok(DatasetSummary {
             path: self.path.clone(),
             rays: self.rays,
@@ -589,16 +558,6 @@ impl DatasetWriter {
             file_bytes: self.offset + tail.len() as u64,
             raw_bytes: self.raw_bytes,
         })
-    }
-}
-
-impl Drop for DatasetWriter {
-    /// A writer dropped without `finish` (an error, a panic) removes its
-    /// temporary file instead of leaving it behind.
-    fn drop(&mut self) {
-        if self.file.take().is_some() {
-            let _ = std::fs::remove_file(&self.tmp);
-        }
     }
 }
 
@@ -951,6 +910,46 @@ mod tests {
             assert!(color_close(x.throughput, y.throughput), "{x:?} {y:?}");
             assert!(color_close(x.radiance, y.radiance));
             assert_eq!(x.bounces.min(64), y.bounces);
+        }
+    }
+
+    /// The encoder before it used the `half` crate: files written today
+    /// carry the same bits.
+    fn f32_to_f16_by_hand(x: f32) -> u16 {
+        if x.is_nan() || x <= 0.0 {
+            return 0;
+        }
+        if x >= 65504.0 {
+            return 0x7bff;
+        }
+        if x < 6.103_515_6e-5 {
+            return (x * 16_777_216.0).round_ties_even() as u16;
+        }
+        let a = x.to_bits();
+        let mant = a & 0x7f_ffff;
+        let exp = (a >> 23) + 15 - 127;
+        let mut h = (exp << 10) | (mant >> 13);
+        let rem = mant & 0x1fff;
+        if rem > 0x1000 || (rem == 0x1000 && h & 1 == 1) {
+            h += 1;
+        }
+        h as u16
+    }
+
+    #[test]
+    fn f16_encoding_is_unchanged_by_the_half_crate() {
+        // Every 61st f32 bit pattern, both signs, and every half's
+        // neighbourhood (where rounding ties live).
+        for bits in (0..=u32::MAX).step_by(61) {
+            let x = f32::from_bits(bits);
+            assert_eq!(f32_to_f16(x), f32_to_f16_by_hand(x), "{x:e} ({bits:#x})");
+        }
+        for h in 0..0x7c00u32 {
+            let base = ((h + 112) << 23) | 0x1000;
+            for bits in [base.wrapping_sub(1), base, base + 1, base + 0x2000] {
+                let x = f32::from_bits(bits);
+                assert_eq!(f32_to_f16(x), f32_to_f16_by_hand(x), "{x:e}");
+            }
         }
     }
 

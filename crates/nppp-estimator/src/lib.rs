@@ -9,6 +9,7 @@ pub mod exit;
 pub mod grid;
 pub mod mlp;
 pub mod quant;
+pub mod recipe;
 pub mod sampler;
 
 pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use nppp_estimator::grid::{checked_node_count, node_coords};
 use nppp_estimator::{
     BakedEstimator, DecodeRepairs, EstimatorMeta, EstimatorSampler, Exit, SamplerScratch,
@@ -21,7 +21,7 @@ use crate::backend::BackendKind;
 use crate::data::{DataSplit, is_heldout};
 use crate::eval::{BurnEstimator, EvalOptions, ExitSource, HeldoutMetrics, eval_rng, evaluate};
 use crate::io::load_dataset_where;
-use crate::train::{LoadedModel, load_model_dir};
+use crate::model_dir::{LoadedModel, load_model_dir};
 
 fn parse_bits(s: &str) -> std::result::Result<u8, String> {
     match s.trim() {
@@ -108,6 +108,65 @@ pub struct BakeReport {
     pub baked: Option<HeldoutMetrics>,
 }
 
+/// The summary `nppp bake` prints: the file, its memory, and the held-out
+/// accuracy of the baked estimator beside the unbaked model's.
+impl std::fmt::Display for BakeReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if let Some(out) = &self.out {
+            writeln!(f, "{}", out.display())?;
+        }
+        writeln!(
+            f,
+            "  grids       latent {}^4 at {} bits, mask {}^4 at {} bits: {} with the decoder",
+            self.latent_res,
+            self.bits,
+            self.mask_res,
+            self.mask_bits,
+            nppp_files::format_bytes(self.memory_bytes as u64)
+        )?;
+        writeln!(
+            f,
+            "  time        {:.1} s; largest node error {:.2} quantization steps",
+            self.seconds, self.max_node_error_steps
+        )?;
+        match (&self.unbaked, &self.baked) {
+            (Some(u), Some(b)) => {
+                writeln!(f, "  held-out    {} rays ({} hits)", b.rays, b.hit_rays)?;
+                let row = |f: &mut std::fmt::Formatter<'_>, name: &str, x: String, y: String| {
+                    writeln!(f, "    {name:<30} {x:>9} {y:>9}")
+                };
+                row(f, "", "unbaked".into(), "baked".into())?;
+                row(
+                    f,
+                    "chamfer",
+                    format!("{:.4}", u.chamfer),
+                    format!("{:.4}", b.chamfer),
+                )?;
+                row(
+                    f,
+                    "mask accuracy",
+                    format!("{:.2}%", 100.0 * u.mask_accuracy),
+                    format!("{:.2}%", 100.0 * b.mask_accuracy),
+                )?;
+                row(
+                    f,
+                    "throughput RMS error per ray",
+                    format!("{:.2}%", 100.0 * u.throughput_rms_error),
+                    format!("{:.2}%", 100.0 * b.throughput_rms_error),
+                )?;
+                write!(
+                    f,
+                    "    {:<30} {:>9} {:>9}",
+                    "throughput bias",
+                    format!("{:+.2}%", 100.0 * u.throughput_bias),
+                    format!("{:+.2}%", 100.0 * b.throughput_bias)
+                )
+            }
+            _ => write!(f, "  held-out    not scored (--no-eval)"),
+        }
+    }
+}
+
 /// Nodes per Burn call: see `eval::ROWS_PER_CALL`.
 const NODES_PER_CALL: usize = 32_768;
 
@@ -136,12 +195,10 @@ fn progress(quiet: bool, len: u64, what: &str) -> ProgressBar {
         return ProgressBar::hidden();
     }
     let pb = ProgressBar::new(len);
-    pb.set_style(
-        ProgressStyle::with_template(&format!(
-            "{what} {{bar:30}} {{pos}}/{{len}} nodes ({{per_sec}}, eta {{eta}})"
-        ))
-        .expect("static template"),
-    );
+    pb.set_style(nppp_files::progress_style(
+        &format!("{what} {{bar:30}} {{pos}}/{{len}} nodes ({{rate}}, eta {{eta}})"),
+        "nodes",
+    ));
     pb
 }
 
@@ -331,8 +388,14 @@ pub fn max_node_error_steps(baked: &BakedEstimator, latent: &[f32]) -> f64 {
 pub fn load_heldout(loaded: &LoadedModel, data: Option<&Path>, quiet: bool) -> Result<DataSplit> {
     let path = data.unwrap_or(&loaded.meta.data_path);
     let every = loaded.train_config.holdout_every;
-    let (header, rays) = load_dataset_where(path, quiet, |i| is_heldout(i, every))
-        .with_context(|| format!("reading held-out rays from {}", path.display()))?;
+    let (header, rays) =
+        load_dataset_where(path, quiet, 1.0 / every as f64, |i| is_heldout(i, every))
+            .with_context(|| {
+                format!(
+                    "reading held-out rays from {} (to bake without scoring them: --no-eval)",
+                    path.display()
+                )
+            })?;
     if header.mesh_hash != loaded.meta.dataset.mesh_hash
         || header.material_hash != loaded.meta.dataset.material_hash
     {
@@ -375,29 +438,84 @@ fn eval_pair(
     Ok((mu, mb))
 }
 
-/// `nppp bake`: writes the estimator file and reports its accuracy.
+/// Refuses, before any work, an `--out` that is not a `.nppp` name, cannot
+/// be written, or names one of bake's inputs: the training data (a typo of
+/// `.nppd` for `.nppp`), a file of the model directory, or a place inside
+/// its checkpoint, which training replaces wholesale.
+fn check_out(opts: &BakeOptions, loaded: &LoadedModel) -> Result<()> {
+    let out = &opts.out;
+    let is_nppp = out
+        .extension()
+        .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case("nppp"));
+    if !is_nppp {
+        bail!(
+            "--out {}: an estimator file is named *.nppp (bake never writes under another \
+             extension, so a slip cannot overwrite training data or a model file)",
+            out.display()
+        );
+    }
+    nppp_files::check_writable(out).map_err(|e| anyhow::anyhow!("--out {}: {e}", out.display()))?;
+    let data = opts.data.as_deref().unwrap_or(&loaded.meta.data_path);
+    nppp_files::ensure_not_input("--out", out, &[("the training data bake reads", data)])
+        .map_err(anyhow::Error::msg)?;
+    for d in [
+        crate::model_dir::files::CHECKPOINT,
+        crate::model_dir::files::CHECKPOINT_OLD,
+        crate::model_dir::files::CHECKPOINT_TMP,
+    ] {
+        if nppp_files::is_inside(out, &opts.model.join(d)) {
+            bail!(
+                "--out {} is inside the model's {d}/ folder, which training replaces as a whole; \
+                 write the estimator elsewhere (for example models/NAME.nppp)",
+                out.display()
+            );
+        }
+    }
+    if let Ok(entries) = std::fs::read_dir(&opts.model) {
+        for e in entries.flatten() {
+            let p = e.path();
+            if p.is_file() && nppp_files::same_file(out, &p) {
+                bail!(
+                    "--out {} is a file of the model directory {}; write the estimator elsewhere",
+                    out.display(),
+                    opts.model.display()
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+/// `nppp bake`: bakes, scores the result against the unbaked model, and
+/// only then writes the estimator file (atomically): a failure at any step
+/// leaves an existing `--out` as it was.
 pub fn bake(opts: &BakeOptions) -> Result<BakeReport> {
     let t0 = Instant::now();
     let device = opts.backend.device()?;
     let loaded = load_model_dir(&opts.model, &device)?;
+    check_out(opts, &loaded)?;
+    // The held-out rays are read before the (long) grid pass, so a missing
+    // or mismatched data file fails at once.
+    let heldout = if opts.no_eval {
+        None
+    } else {
+        Some(load_heldout(&loaded, opts.data.as_deref(), opts.quiet)?)
+    };
     let grids = compute_grids(&loaded, opts.latent_grid, opts.mask_grid, opts.quiet)?;
     let baked = assemble(&loaded, &grids, opts.bits, opts.mask_bits)?;
     let max_node_error_steps = max_node_error_steps(&baked, &grids.latent);
-    if let Some(dir) = opts.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    baked
-        .save(&opts.out)
-        .with_context(|| format!("writing {}", opts.out.display()))?;
     let memory_bytes = baked.memory_bytes();
+    let bytes = baked.to_bytes();
     let seconds = t0.elapsed().as_secs_f64();
-    let (unbaked, baked_m) = if opts.no_eval {
-        (None, None)
-    } else {
-        let heldout = load_heldout(&loaded, opts.data.as_deref(), opts.quiet)?;
-        let (a, b) = eval_pair(&loaded, baked, &heldout, opts.eval_rays)?;
-        (Some(a), Some(b))
+    let (unbaked, baked_m) = match &heldout {
+        None => (None, None),
+        Some(h) => {
+            let (a, b) = eval_pair(&loaded, baked, h, opts.eval_rays)?;
+            (Some(a), Some(b))
+        }
     };
+    nppp_files::write_atomic(&opts.out, &bytes)
+        .with_context(|| format!("writing {}", opts.out.display()))?;
     Ok(BakeReport {
         out: Some(opts.out.clone()),
         latent_res: opts.latent_grid,

@@ -64,16 +64,89 @@ impl ModelMeta {
 
 /// Reads a whole data file (a progress bar on stderr unless `quiet`).
 pub fn load_dataset(path: &Path, quiet: bool) -> Result<(DatasetInfo, Vec<RaySample>)> {
-    load_dataset_where(path, quiet, |_| true)
+    load_dataset_where(path, quiet, 1.0, |_| true)
+}
+
+/// Memory held per ray and per exit while a data file is loaded and turned
+/// into training arrays: the record, its features and pair; per exit the
+/// decoded record, its encoded features, and the raw copy kept for
+/// evaluation. An upper bound, from the types' sizes.
+const MEM_PER_RAY: u64 = (size_of::<RaySample>()
+    + size_of::<nppp_geom::SpherePair>()
+    + 4 * crate::features::INPUT_FEATURES
+    + 16) as u64;
+const MEM_PER_EXIT: u64 =
+    (2 * size_of::<nppp_estimator::Exit>() + 4 * nppp_estimator::EXIT_FEATURES) as u64;
+
+/// How many times its own size a data file may claim in memory. Real files
+/// take 10 to 20 times their size once loaded (exits are stored in about 8
+/// compressed bytes and held in about 150); a file that claims more was
+/// forged or damaged (deflate turns a megabyte of zeros into a gigabyte).
+pub const MAX_MEMORY_PER_FILE_BYTE: u64 = 128;
+/// Claims below this are never refused for their ratio (tiny files).
+const SMALL_CLAIM: u64 = 64 << 20;
+
+/// Bytes needed to load `share` of a file of `rays` rays, `hits` of them
+/// with `k` exits each.
+pub fn memory_to_load(rays: u64, hits: u64, k: u64, share: f64) -> u64 {
+    let all = rays
+        .saturating_mul(MEM_PER_RAY)
+        .saturating_add(hits.saturating_mul(k).saturating_mul(MEM_PER_EXIT));
+    (all as f64 * share.clamp(0.0, 1.0)).ceil() as u64
+}
+
+/// Refuses a data file whose claims (rays, hits, k) would need more memory
+/// than its size can hold or than the machine has, before reading it.
+fn check_claims(path: &Path, reader: &DatasetReader, share: f64) -> Result<()> {
+    let file_bytes = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+    let (rays, hits, k) = (
+        reader.len() as u64,
+        reader.hit_count(),
+        reader.header().k as u64,
+    );
+    let need = memory_to_load(rays, hits, k, share);
+    let claim = memory_to_load(rays, hits, k, 1.0);
+    let what = format!("{rays} rays, {hits} of them hits with k = {k} exits each");
+    if claim > SMALL_CLAIM && claim / MAX_MEMORY_PER_FILE_BYTE > file_bytes {
+        bail!(
+            "{}: claims {what}, which would take {} in memory from a {} file (more than \
+             {MAX_MEMORY_PER_FILE_BYTE}x its size; real data takes 10-20x): the file is damaged \
+             or forged. Regenerate it with `nppp gen`",
+            path.display(),
+            nppp_files::format_bytes(claim),
+            nppp_files::format_bytes(file_bytes)
+        );
+    }
+    if let Some(avail) = nppp_files::available_memory()
+        && need > avail
+    {
+        bail!(
+            "{}: holds {what}; loading it needs about {}, more than the {} of memory available. \
+             Generate fewer rays or a smaller k (`nppp gen --rays N --k K`), or use a machine \
+             with more memory",
+            path.display(),
+            nppp_files::format_bytes(need),
+            nppp_files::format_bytes(avail)
+        );
+    }
+    Ok(())
 }
 
 /// Reads the rays of a data file whose index passes `keep` (streaming, so
 /// that reading only the held-out rays does not hold the whole file).
+/// `share` is the fraction of the rays `keep` passes, for the memory check.
 pub fn load_dataset_where(
     path: &Path,
     quiet: bool,
+    share: f64,
     keep: impl Fn(usize) -> bool,
 ) -> Result<(DatasetInfo, Vec<RaySample>)> {
+    if path.is_dir() {
+        bail!(
+            "training data {} is a directory; name the .nppd file `nppp gen --out` wrote",
+            path.display()
+        );
+    }
     if !path.is_file() {
         bail!(
             "training data {} does not exist (run `nppp gen` / `make data` first)",
@@ -81,6 +154,7 @@ pub fn load_dataset_where(
         );
     }
     let mut reader = DatasetReader::open(path)?;
+    check_claims(path, &reader, share)?;
     let header = reader.header().clone();
     let pb = if quiet {
         ProgressBar::hidden()

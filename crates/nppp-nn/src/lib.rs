@@ -15,6 +15,7 @@ pub mod features;
 pub mod io;
 pub mod loss;
 pub mod model;
+pub mod model_dir;
 pub mod synthetic;
 pub mod train;
 
@@ -25,7 +26,8 @@ pub use eval::{BurnEstimator, EvalOptions, ExitSource, HeldoutMetrics, evaluate}
 pub use features::{INPUT_FEATURES, ray_features};
 pub use io::{DatasetInfo, ModelMeta, load_dataset, load_dataset_where, synthetic_header};
 pub use model::{MlpNet, ModelConfig, NpppModel};
+pub use model_dir::{LoadedModel, load_model_dir};
 pub use train::{
-    LoadedModel, TrainConfig, TrainError, TrainOptions, TrainReport, load_model_dir, train,
-    train_with_data,
+    TrainConfig, TrainError, TrainOptions, TrainReport, in_training_loop, request_stop,
+    stop_requested, train, train_with_data,
 };

@@ -7,17 +7,15 @@
 //! from Burn's generator: a run is then reproducible on CPU backends, and a
 //! resumed run draws exactly what the uninterrupted run would have drawn.
 
-use std::fs;
-use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use burn::config::Config;
-use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor, TensorData};
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use indicatif::{ProgressBar, ProgressDrawTarget};
 use nppp_estimator::EXIT_FEATURES;
 use nppp_geom::SampleRng;
 use serde::{Deserialize, Serialize};
@@ -31,20 +29,12 @@ use crate::loss::{
     bce_with_logits, chamfer_from_dists, energy_distance_trainable, pairwise_sq_dists,
 };
 use crate::model::{ModelConfig, NpppModel};
+use crate::model_dir::{
+    Checkpoint, CheckpointContent, DataFingerprint, STATE_VERSION, TrainState, check_fresh_out,
+    checkpoint_dir, load_optimizer, load_weights, open_checkpoint, save_checkpoint,
+};
 
-/// File names inside a model directory.
-pub mod files {
-    pub const MODEL_CONFIG: &str = "model_config.json";
-    pub const TRAIN_CONFIG: &str = "train_config.json";
-    pub const META: &str = "meta.json";
-    pub const LOG: &str = "log.csv";
-    pub const CHECKPOINT: &str = "checkpoint";
-    pub const CHECKPOINT_TMP: &str = "checkpoint.tmp";
-    pub const CHECKPOINT_OLD: &str = "checkpoint.old";
-    pub const WEIGHTS: &str = "model.bpk";
-    pub const OPTIMIZER: &str = "optim.bpk";
-    pub const STATE: &str = "state.json";
-}
+pub use crate::model_dir::files;
 
 /// Command-line options of `nppp train`. Hyperparameters left unset take the
 /// defaults of [`TrainConfig`] on a fresh run, and the saved values on
@@ -127,6 +117,15 @@ pub struct TrainOptions {
     /// Mask network hidden width.
     #[arg(long)]
     pub mask_width: Option<usize>,
+    /// Write a row of training losses (averaged since the previous row),
+    /// learning rate and time per step to log.csv every this many steps
+    /// (0: only at evaluations).
+    #[arg(long, default_value_t = 100)]
+    pub log_every: u64,
+    /// Also score the held-out rays (and checkpoint) every this many steps,
+    /// besides every epoch's end (0: only at epoch ends).
+    #[arg(long, default_value_t = 2000)]
+    pub eval_every: u64,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -158,6 +157,8 @@ impl TrainOptions {
             encoder_width: None,
             decoder_width: None,
             mask_width: None,
+            log_every: 100,
+            eval_every: 2000,
             quiet: false,
         }
     }
@@ -260,40 +261,69 @@ impl TrainConfig {
         if self.holdout_every < 2 {
             bail!("holdout_every must be at least 2");
         }
+        self.check_step_memory()
+    }
+
+    /// Bytes one step holds for the exit terms (pairwise distances of the
+    /// b x k generated and real exits, decoder activations) and for the mask
+    /// term: the forward values kept for the backward pass, their gradients
+    /// and temporaries (x3), in f32. An estimate from the shapes, meant to
+    /// refuse flags that cannot fit, not to predict the peak exactly.
+    pub fn step_memory_bytes(&self) -> (u64, u64) {
+        let m = &self.model;
+        let w = |x: usize| x as u64;
+        let (b, k, bm) = (w(self.batch), w(self.k), w(self.mask_batch));
+        let bk = b.saturating_mul(k);
+        let per_exit = w(m.decoder_width)
+            .saturating_mul(w(m.decoder_layers) + 1)
+            .saturating_add(w(EXIT_FEATURES + m.noise_dim + m.latent_dim));
+        let exits = bk
+            .saturating_mul(k.saturating_mul(6))
+            .saturating_add(bk.saturating_mul(per_exit))
+            .saturating_add(b.saturating_mul(
+                w(m.encoder_width).saturating_mul(w(m.encoder_layers) + 1) + w(INPUT_FEATURES),
+            ));
+        let mask = bm.saturating_mul(
+            w(m.mask_width)
+                .saturating_mul(w(m.mask_layers) + 1)
+                .saturating_add(w(INPUT_FEATURES)),
+        );
+        let bytes = |elems: u64| elems.saturating_mul(4 * 3);
+        (bytes(exits), bytes(mask))
+    }
+
+    /// Refuses a batch shape whose step would not fit in half the memory
+    /// available (16 GiB assumed where it cannot be read): a clear error
+    /// instead of an abort on allocation.
+    fn check_step_memory(&self) -> Result<()> {
+        let budget = nppp_files::available_memory().unwrap_or(16 << 30) / 2;
+        let (exits, mask) = self.step_memory_bytes();
+        let fmt = nppp_files::format_bytes;
+        if exits > budget {
+            bail!(
+                "--batch {} with --k {}: one training step would hold about {} (pairwise \
+                 distances of {} x {} x {} exits and the decoder's activations), more than half \
+                 of the {} of memory available; the defaults are --batch 64 --k 64",
+                self.batch,
+                self.k,
+                fmt(exits),
+                self.batch,
+                self.k,
+                self.k,
+                fmt(2 * budget)
+            );
+        }
+        if mask > budget {
+            bail!(
+                "--mask-batch {}: one training step would hold about {} for the mask term, more \
+                 than half of the {} of memory available; the default is 1024",
+                self.mask_batch,
+                fmt(mask),
+                fmt(2 * budget)
+            );
+        }
         Ok(())
     }
-}
-
-/// What identifies the data a checkpoint was trained on.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct DataFingerprint {
-    pub rays: usize,
-    pub hits: usize,
-    pub k: usize,
-    pub mesh_hash: u64,
-    pub material_hash: u64,
-}
-
-/// Progress saved with every checkpoint (`checkpoint/state.json`).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct TrainState {
-    pub version: u32,
-    /// Optimizer steps done.
-    pub step: u64,
-    pub steps_per_epoch: usize,
-    /// Training time over all invocations.
-    pub elapsed_s: f64,
-    /// Running sums of this epoch's training losses (total, chamfer, energy,
-    /// bce) and their count, so a resumed epoch logs the same average.
-    pub epoch_sums: [f64; 4],
-    pub epoch_count: u64,
-    pub data: DataFingerprint,
-    pub last_metrics: Option<HeldoutMetrics>,
-    /// The run's length after fitting it into a `--minutes` budget (None:
-    /// the configured length): the learning-rate schedule follows it, so a
-    /// time-limited run still ends with its decay phase.
-    #[serde(default)]
-    pub schedule_steps: Option<u64>,
 }
 
 /// Result of a training run.
@@ -318,20 +348,173 @@ pub struct TrainReport {
     pub metrics: Option<HeldoutMetrics>,
 }
 
+/// The summary `nppp train` prints: a few aligned lines with units, the
+/// held-out numbers that matter and where the files went.
+impl std::fmt::Display for TrainReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let dir = self.model_dir.display();
+        writeln!(f, "{dir}")?;
+        writeln!(
+            f,
+            "  steps       {} of {} ({} in this run, {:.2} epochs){}",
+            self.steps,
+            self.schedule_steps,
+            self.steps_this_run,
+            self.epochs_completed,
+            if self.stopped_by_time {
+                "; stopped by --minutes"
+            } else {
+                ""
+            }
+        )?;
+        writeln!(
+            f,
+            "  time        {:.1} min in all; {:.1} ms per step in this run ({:.1} ms for the step \
+             itself), {} backend",
+            self.elapsed_s / 60.0,
+            1e3 * self.seconds_per_step,
+            1e3 * self.step_seconds,
+            self.backend
+        )?;
+        if let Some(m) = &self.metrics {
+            writeln!(
+                f,
+                "  held-out    {} rays ({} hits): chamfer {:.4}, energy {:.4}, mask accuracy {:.2}%",
+                m.rays,
+                m.hit_rays,
+                m.chamfer,
+                m.energy,
+                100.0 * m.mask_accuracy
+            )?;
+            writeln!(
+                f,
+                "  throughput  mean error per ray {:.2}% (RMS {:.2}%, bias {:+.2}%, noise floor {:.2}%)",
+                100.0 * m.throughput_error,
+                100.0 * m.throughput_rms_error,
+                100.0 * m.throughput_bias,
+                100.0 * m.throughput_noise_floor
+            )?;
+        }
+        writeln!(
+            f,
+            "  files       {dir}/checkpoint/ (weights, configs, state), {dir}/log.csv"
+        )?;
+        if self.steps < self.schedule_steps {
+            write!(
+                f,
+                "  next        continue with `nppp train --resume --data DATA.nppd --out {dir}`"
+            )
+        } else {
+            write!(
+                f,
+                "  next        `nppp bake --model {dir} --out models/NAME.nppp`"
+            )
+        }
+    }
+}
+
 /// A training failure that callers may want to tell apart.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
-    #[error(
-        "training diverged: the loss became non-finite ({value}) at step {step}; stopped without \
-         saving. The last good checkpoint (step {last_good}) is kept in {dir}; resume it with \
-         --resume and a lower --lr"
-    )]
+    #[error("{}", non_finite_message(*step, *value, *last_good, dir, *kept_previous))]
     NonFinite {
         step: u64,
         value: f32,
-        last_good: u64,
+        /// The newest checkpoint of this run (resumed from or saved since),
+        /// if there is one: what `--resume` continues.
+        last_good: Option<u64>,
         dir: PathBuf,
+        /// A fresh run (`--overwrite`) left an older model in `dir` untouched.
+        kept_previous: bool,
     },
+    #[error("{}", interrupted_message(*step, dir, data, *saved))]
+    Interrupted {
+        step: u64,
+        dir: PathBuf,
+        data: PathBuf,
+        /// Whether a checkpoint of `step` is in `dir` (none when a fresh
+        /// run is stopped before its first step).
+        saved: bool,
+    },
+}
+
+fn interrupted_message(step: u64, dir: &Path, data: &Path, saved: bool) -> String {
+    if saved {
+        format!(
+            "interrupted: a checkpoint of step {step} is saved in {}; continue with \
+             `nppp train --resume --data {} --out {}`",
+            dir.display(),
+            data.display(),
+            dir.display()
+        )
+    } else {
+        "interrupted before the first training step; nothing was saved".to_string()
+    }
+}
+
+fn non_finite_message(
+    step: u64,
+    value: f32,
+    last_good: Option<u64>,
+    dir: &Path,
+    kept_previous: bool,
+) -> String {
+    let head = format!("training diverged: the loss became non-finite ({value}) at step {step}");
+    match last_good {
+        Some(n) => format!(
+            "{head}; stopped without saving. The last good checkpoint (step {n}) is kept in {}; \
+             resume it with --resume and a lower --lr",
+            dir.display()
+        ),
+        None if kept_previous => format!(
+            "{head}, before this run saved any checkpoint; nothing was saved, and the model that \
+             was in {} before --overwrite is untouched. Start again with a lower --lr",
+            dir.display()
+        ),
+        None => format!(
+            "{head}, before this run saved any checkpoint; nothing was saved. Start again with \
+             a lower --lr"
+        ),
+    }
+}
+
+/// Set by [`request_stop`] (the CLI's Ctrl-C / SIGTERM handler): the
+/// training loop saves a checkpoint after the current step and returns
+/// [`TrainError::Interrupted`].
+static STOP_REQUESTED: AtomicBool = AtomicBool::new(false);
+/// Whether a training loop is running (and so will act on a stop request);
+/// outside it, an interrupt may end the process at once.
+static IN_TRAINING_LOOP: AtomicBool = AtomicBool::new(false);
+
+/// Asks the running training loop to checkpoint and stop.
+pub fn request_stop() {
+    STOP_REQUESTED.store(true, Ordering::SeqCst);
+}
+
+/// Whether a stop was requested.
+pub fn stop_requested() -> bool {
+    STOP_REQUESTED.load(Ordering::SeqCst)
+}
+
+/// Whether a training loop is running (it acts on [`request_stop`]).
+pub fn in_training_loop() -> bool {
+    IN_TRAINING_LOOP.load(Ordering::SeqCst)
+}
+
+/// Marks the training loop as running while alive.
+struct LoopGuard;
+
+impl LoopGuard {
+    fn enter() -> Self {
+        IN_TRAINING_LOOP.store(true, Ordering::SeqCst);
+        Self
+    }
+}
+
+impl Drop for LoopGuard {
+    fn drop(&mut self) {
+        IN_TRAINING_LOOP.store(false, Ordering::SeqCst);
+    }
 }
 
 // Stream ids of the per-step random choices.
@@ -356,11 +539,11 @@ throughput_noise_floor,throughput_rms_error,radiance_error,radiance_bias,seconds
 
 /// Trains on the data file named in `opts` (see [`TrainOptions`]).
 pub fn train(opts: &TrainOptions) -> Result<TrainReport> {
-    let cfg = resolve_config(opts)?;
+    let (cfg, ckpt) = resolve_config(opts)?;
     let (info, rays) = load_dataset(&opts.data, opts.quiet)?;
     let data = TrainingData::build(rays, info.k as usize, cfg.holdout_every)
         .with_context(|| format!("preparing {}", opts.data.display()))?;
-    train_on(opts, cfg, info, data)
+    train_on(opts, cfg, ckpt, info, data)
 }
 
 /// Trains on data already in memory (the tests and tools use this with
@@ -370,31 +553,34 @@ pub fn train_with_data(
     info: DatasetInfo,
     data: TrainingData,
 ) -> Result<TrainReport> {
-    let cfg = resolve_config(opts)?;
-    train_on(opts, cfg, info, data)
-}
-
-fn checkpoint_dir(out: &Path) -> Option<PathBuf> {
-    [files::CHECKPOINT, files::CHECKPOINT_OLD]
-        .iter()
-        .map(|n| out.join(n))
-        .find(|d| d.join(files::STATE).is_file())
+    let (cfg, ckpt) = resolve_config(opts)?;
+    train_on(opts, cfg, ckpt, info, data)
 }
 
 /// The run's configuration: the saved one on resume (checked against the
-/// command line), else defaults overridden by the command line.
-fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
-    let saved_path = opts.out.join(files::TRAIN_CONFIG);
+/// command line), else defaults overridden by the command line. On resume,
+/// the checked checkpoint comes with it.
+fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option<Checkpoint>)> {
+    let mut ckpt = None;
     let mut cfg = if opts.resume {
-        if checkpoint_dir(&opts.out).is_none() {
+        if !opts.out.is_dir() {
             bail!(
-                "--resume: {} holds no checkpoint to resume",
+                "--resume: {} is not a model directory (no such folder)",
                 opts.out.display()
             );
         }
-        let cfg = TrainConfig::load(&saved_path).map_err(|e| {
-            anyhow::anyhow!("--resume: cannot read {}: {e:?}", saved_path.display())
-        })?;
+        let c = open_checkpoint(&opts.out)
+            .context("--resume")?
+            .with_context(|| {
+                format!(
+                    "--resume: {} holds no checkpoint to resume (a run saves its first one at \
+                     the end of its first epoch, after {} s, or when stopped)",
+                    opts.out.display(),
+                    CHECKPOINT_EVERY_S
+                )
+            })?;
+        let cfg = c.train_config.clone();
+        ckpt = Some(c);
         let clash = |name: &str, given: Option<String>, saved: String| -> Result<()> {
             match given {
                 Some(g) if g != saved => bail!(
@@ -448,6 +634,7 @@ fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
         )?;
         cfg
     } else {
+        check_fresh_out(&opts.out)?;
         if checkpoint_dir(&opts.out).is_some() && !opts.overwrite {
             bail!(
                 "{} already holds a checkpoint; pass --resume to continue it, --overwrite to \
@@ -511,7 +698,7 @@ fn resolve_config(opts: &TrainOptions) -> Result<TrainConfig> {
         bail!("--minutes {} must be >= 0", opts.minutes);
     }
     cfg.validate()?;
-    Ok(cfg)
+    Ok((cfg, ckpt))
 }
 
 fn fingerprint(info: &DatasetInfo, data: &TrainingData) -> DataFingerprint {
@@ -679,139 +866,82 @@ fn make_optimizer(cfg: &TrainConfig) -> ModuleOptimizer {
     a.init()
 }
 
-/// Runs `f`, turning a panic inside Burn (it panics on some malformed files)
-/// into an error.
-fn no_panic<T>(what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
-    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
-        Ok(r) => r,
-        Err(p) => {
-            let msg = p
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_default();
-            bail!("{what}: the file is corrupt or from another model ({msg})")
-        }
-    }
-}
-
-/// Loads the weights of a model directory's checkpoint onto `device`.
-pub fn load_weights(ckpt: &Path, cfg: &ModelConfig, device: &Device) -> Result<NpppModel> {
-    let path = ckpt.join(files::WEIGHTS);
-    if !path.is_file() {
-        bail!("{} is missing", path.display());
-    }
-    let fresh = NpppModel::init(cfg, 0, device)?;
-    no_panic(&format!("loading {}", path.display()), || {
-        fresh
-            .try_load_file(&path)
-            .map_err(|e| anyhow::anyhow!("loading {}: {e:?}", path.display()))
-    })
-}
-
-fn read_state(ckpt: &Path) -> Result<TrainState> {
-    let p = ckpt.join(files::STATE);
-    let s = fs::read_to_string(&p).with_context(|| format!("reading {}", p.display()))?;
-    let st: TrainState =
-        serde_json::from_str(&s).with_context(|| format!("{} is corrupt", p.display()))?;
-    if st.version != 1 {
-        bail!("{}: unsupported state version {}", p.display(), st.version);
-    }
-    Ok(st)
-}
-
-fn save_checkpoint(
-    out: &Path,
-    cfg: &TrainConfig,
-    model: &NpppModel,
-    optim: &ModuleOptimizer,
-    state: &TrainState,
-) -> Result<()> {
-    // The config is saved with each checkpoint, not at start: a learning
-    // rate given to a run that then diverged must not outlive that run.
-    cfg.save(out.join(files::TRAIN_CONFIG))
-        .with_context(|| format!("writing {}", files::TRAIN_CONFIG))?;
-    let tmp = out.join(files::CHECKPOINT_TMP);
-    let cur = out.join(files::CHECKPOINT);
-    let old = out.join(files::CHECKPOINT_OLD);
-    if tmp.exists() {
-        fs::remove_dir_all(&tmp).with_context(|| format!("removing {}", tmp.display()))?;
-    }
-    fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
-    model
-        .clone()
-        .save_file(tmp.join(files::WEIGHTS))
-        .map_err(|e| anyhow::anyhow!("saving weights: {e:?}"))?;
-    optim
-        .save(tmp.join(files::OPTIMIZER))
-        .map_err(|e| anyhow::anyhow!("saving optimizer state: {e:?}"))?;
-    fs::write(tmp.join(files::STATE), serde_json::to_string_pretty(state)?)?;
-    // Swap: there is always one complete checkpoint on disk (`checkpoint` or,
-    // for the instant between the renames, `checkpoint.old`).
-    if old.exists() {
-        fs::remove_dir_all(&old)?;
-    }
-    if cur.exists() {
-        fs::rename(&cur, &old)?;
-    }
-    fs::rename(&tmp, &cur)?;
-    if old.exists() {
-        fs::remove_dir_all(&old)?;
-    }
-    Ok(())
-}
-
-fn write_json_atomic(path: &Path, text: &str) -> Result<()> {
-    let tmp = path.with_extension("json.tmp");
-    fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
-    fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;
-    Ok(())
-}
-
-/// Keeps only the log rows at or before `step` (rows written after the
-/// checkpoint we resume from describe a future that is about to be redone).
-fn prune_log(path: &Path, step: u64) -> Result<()> {
-    let Ok(text) = fs::read_to_string(path) else {
-        return Ok(());
+/// One row of log.csv (see `LOG_HEADER`); the held-out columns are empty
+/// on rows without an evaluation.
+fn log_row(
+    epoch: f64,
+    step: u64,
+    elapsed_s: f64,
+    lr: f64,
+    train: &[f64],
+    heldout: Option<&HeldoutMetrics>,
+    seconds_per_step: f64,
+) -> String {
+    let held = match heldout {
+        Some(m) => format!(
+            "{:.6},{:.6},{:.6},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5}",
+            m.chamfer,
+            m.energy,
+            m.mask_bce,
+            m.mask_accuracy,
+            m.throughput_error,
+            m.throughput_bias,
+            m.throughput_noise_floor,
+            m.throughput_rms_error,
+            m.radiance_error,
+            m.radiance_bias
+        ),
+        None => ",,,,,,,,,".to_string(),
     };
-    let mut out = String::new();
-    for (i, line) in text.lines().enumerate() {
-        let keep = i == 0
-            || line
-                .split(',')
-                .nth(1)
-                .and_then(|s| s.parse::<u64>().ok())
-                .is_some_and(|s| s <= step);
-        if keep {
-            out.push_str(line);
-            out.push('\n');
-        }
-    }
-    fs::write(path, out)?;
-    Ok(())
+    format!(
+        "{epoch:.4},{step},{elapsed_s:.2},{lr:e},{:.6},{:.6},{:.6},{:.6},{held},{seconds_per_step:.5}",
+        train[0], train[1], train[2], train[3]
+    )
 }
 
-fn append_log(path: &Path, row: &str) -> Result<()> {
-    let new = !path.exists();
-    let mut f = fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(path)
-        .with_context(|| format!("opening {}", path.display()))?;
-    if new {
-        writeln!(f, "{LOG_HEADER}")?;
+/// Appends a row to the log.csv beside the checkpoint (a copy for people
+/// watching the run; best effort: the checkpoint holds the real log).
+fn append_live_row(path: &Path, row: &str) {
+    use std::io::Write;
+    if let Ok(mut f) = std::fs::OpenOptions::new().append(true).open(path) {
+        let _ = writeln!(f, "{row}");
     }
-    writeln!(f, "{row}")?;
-    Ok(())
 }
 
 fn train_on(
     opts: &TrainOptions,
     cfg: TrainConfig,
+    ckpt: Option<Checkpoint>,
     info: DatasetInfo,
     data: TrainingData,
 ) -> Result<TrainReport> {
     let out = &opts.out;
+    let mut cfg = cfg;
+    // The exits per ray a step uses can only be as many as the file holds;
+    // the saved config says what actually runs.
+    if cfg.k > data.k {
+        if opts.k.is_some() && !opts.resume {
+            bail!(
+                "--k {}: {} holds only {} exits per ray; use --k {} or less, or generate the \
+                 data with `nppp gen --k {}`",
+                cfg.k,
+                opts.data.display(),
+                data.k,
+                data.k,
+                cfg.k
+            );
+        }
+        if !opts.quiet {
+            eprintln!(
+                "note: {} holds {} exits per ray, so each step uses k = {} (the default is {})",
+                opts.data.display(),
+                data.k,
+                data.k,
+                cfg.k
+            );
+        }
+        cfg.k = data.k;
+    }
     if data.heldout.is_empty() {
         bail!(
             "no held-out rays: the data has {} rays and every {}th is held out",
@@ -836,12 +966,13 @@ fn train_on(
     let mut total_steps = total_steps;
     let mut stop_at = opts.stop_after.map_or(total_steps, |s| s.min(total_steps));
     let fp = fingerprint(&info, &data);
-    fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
 
-    // Start fresh or resume.
-    let (mut model, mut optim, mut state) = if opts.resume {
-        let ckpt = checkpoint_dir(out).context("no checkpoint")?;
-        let state = read_state(&ckpt)?;
+    // Start fresh or resume. A fresh run writes nothing into `out` until
+    // its first checkpoint: a model already there (--overwrite) stays whole
+    // until then, whatever happens to this run.
+    let resumed_from = ckpt.as_ref().map(|c| c.state.step);
+    let (mut model, mut optim, mut state, meta, mut log) = if let Some(ckpt) = ckpt {
+        let state = ckpt.state.clone();
         if state.data != fp {
             bail!(
                 "--resume: the checkpoint was trained on other data ({:?}) than {} ({:?})",
@@ -856,38 +987,14 @@ fn train_on(
                 state.steps_per_epoch
             );
         }
-        let model = load_weights(&ckpt, &cfg.model, &ad)?;
-        let opath = ckpt.join(files::OPTIMIZER);
-        let optim = no_panic(&format!("loading {}", opath.display()), || {
-            make_optimizer(&cfg)
-                .load(&opath)
-                .map_err(|e| anyhow::anyhow!("loading {}: {e:?}", opath.display()))
-        })?;
-        prune_log(&out.join(files::LOG), state.step)?;
-        (model, optim, state)
+        let model = load_weights(&ckpt, &ad)?;
+        let optim = load_optimizer(&ckpt, make_optimizer(&cfg))?;
+        (model, optim, state, ckpt.meta, ckpt.log)
     } else {
-        for d in [
-            files::CHECKPOINT,
-            files::CHECKPOINT_OLD,
-            files::CHECKPOINT_TMP,
-        ] {
-            let d = out.join(d);
-            if d.exists() {
-                fs::remove_dir_all(&d).with_context(|| format!("removing {}", d.display()))?;
-            }
-        }
         let meta = ModelMeta::new(info.clone(), data.transform.clone(), opts.data.clone());
-        write_json_atomic(
-            &out.join(files::META),
-            &serde_json::to_string_pretty(&meta)?,
-        )?;
-        cfg.model
-            .save(out.join(files::MODEL_CONFIG))
-            .with_context(|| format!("writing {}", files::MODEL_CONFIG))?;
-        let _ = fs::remove_file(out.join(files::LOG));
         let model = NpppModel::init(&cfg.model, cfg.seed, &ad)?;
         let state = TrainState {
-            version: 1,
+            version: STATE_VERSION,
             step: 0,
             steps_per_epoch: spe,
             elapsed_s: 0.0,
@@ -896,9 +1003,19 @@ fn train_on(
             data: fp,
             last_metrics: None,
             schedule_steps: None,
+            files: Vec::new(),
         };
-        (model, make_optimizer(&cfg), state)
+        (
+            model,
+            make_optimizer(&cfg),
+            state,
+            meta,
+            format!("{LOG_HEADER}\n"),
+        )
     };
+    // The step of the newest checkpoint of *this* run (resumed from, or
+    // saved since): what a divergence message may point to.
+    let mut last_saved = resumed_from;
 
     if let Some(s) = state.schedule_steps {
         total_steps = total_steps.min(s);
@@ -909,12 +1026,10 @@ fn train_on(
         ProgressBar::hidden()
     } else {
         let pb = ProgressBar::with_draw_target(Some(stop_at), ProgressDrawTarget::stderr());
-        pb.set_style(
-            ProgressStyle::with_template(
-                "train {bar:30} {pos}/{len} steps ({per_sec}, eta {eta}) {msg}",
-            )
-            .expect("static template"),
-        );
+        pb.set_style(nppp_files::progress_style(
+            "train {bar:30} {pos}/{len} steps ({rate}, eta {eta}) {msg}",
+            "steps",
+        ));
         pb.set_position(start_step);
         pb
     };
@@ -929,7 +1044,16 @@ fn train_on(
         max_hit_rays: cfg.eval_rays,
         ..EvalOptions::default()
     };
-    let log_path = out.join(files::LOG);
+    let save = |model: &NpppModel, optim: &ModuleOptimizer, state: &TrainState, log: &str| {
+        let content = CheckpointContent {
+            train_config: &cfg,
+            meta: &meta,
+            model,
+            optim,
+            log,
+        };
+        save_checkpoint(out, &content, state)
+    };
 
     let evaluate_model = |model: &NpppModel| -> Result<HeldoutMetrics> {
         let mut est = BurnEstimator::new(
@@ -941,7 +1065,24 @@ fn train_on(
         evaluate(&mut est, &data.heldout, data.k, &data.transform, &eval_opts)
     };
 
+    let mut last_row_at = Instant::now();
+    let mut last_row_step = start_step;
+    let _in_loop = LoopGuard::enter();
     while state.step < stop_at {
+        if stop_requested() {
+            pb.abandon();
+            if state.step > start_step {
+                state.elapsed_s = base_elapsed + t0.elapsed().as_secs_f64();
+                save(&model, &optim, &state, &log)?;
+            }
+            return Err(TrainError::Interrupted {
+                step: state.step,
+                dir: out.clone(),
+                data: opts.data.clone(),
+                saved: last_saved.is_some() || state.step > start_step,
+            }
+            .into());
+        }
         let epoch = state.step / spe as u64;
         if epoch != perm_epoch {
             perm = epoch_permutation(cfg.seed, epoch, n_hit);
@@ -986,14 +1127,12 @@ fn train_on(
             Ok(x) => x,
             Err((_, value)) => {
                 pb.abandon();
-                let last_good = checkpoint_dir(out)
-                    .and_then(|c| read_state(&c).ok())
-                    .map_or(0, |s| s.step);
                 return Err(TrainError::NonFinite {
                     step: state.step + 1,
                     value,
-                    last_good,
+                    last_good: last_saved,
                     dir: out.clone(),
+                    kept_previous: last_saved.is_none() && checkpoint_dir(out).is_some(),
                 }
                 .into());
             }
@@ -1011,72 +1150,76 @@ fn train_on(
         let epoch_end = state.step % spe as u64 == 0;
         let last = state.step >= stop_at;
         let over_time = opts.minutes > 0.0 && t0.elapsed().as_secs_f64() > opts.minutes * 60.0;
-        if epoch_end || last || over_time {
+        let evaluate_now = epoch_end
+            || last
+            || over_time
+            || (opts.eval_every > 0 && state.step.is_multiple_of(opts.eval_every));
+        let log_now = opts.log_every > 0 && state.step.is_multiple_of(opts.log_every);
+        if evaluate_now || log_now {
             state.elapsed_s = base_elapsed + t0.elapsed().as_secs_f64();
-            let metrics = evaluate_model(&model)?;
-            if !(metrics.chamfer.is_finite() && metrics.mask_bce.is_finite()) {
-                pb.abandon();
-                let last_good = checkpoint_dir(out)
-                    .and_then(|c| read_state(&c).ok())
-                    .map_or(0, |s| s.step);
-                return Err(TrainError::NonFinite {
-                    step: state.step,
-                    value: metrics.chamfer as f32,
-                    last_good,
-                    dir: out.clone(),
+            let metrics = if evaluate_now {
+                let m = evaluate_model(&model)?;
+                if !(m.chamfer.is_finite() && m.mask_bce.is_finite()) {
+                    pb.abandon();
+                    return Err(TrainError::NonFinite {
+                        step: state.step,
+                        value: m.chamfer as f32,
+                        last_good: last_saved,
+                        dir: out.clone(),
+                        kept_previous: last_saved.is_none() && checkpoint_dir(out).is_some(),
+                    }
+                    .into());
                 }
-                .into());
-            }
+                Some(m)
+            } else {
+                None
+            };
             let c = state.epoch_count.max(1) as f64;
             let avg: Vec<f64> = state.epoch_sums.iter().map(|s| s / c).collect();
-            let sps = t0.elapsed().as_secs_f64() / (state.step - start_step).max(1) as f64;
-            let row = format!(
-                "{:.4},{},{:.2},{:e},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.6},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5},{:.5}",
+            let window = (state.step - last_row_step).max(1) as f64;
+            let sps = last_row_at.elapsed().as_secs_f64() / window;
+            let row = log_row(
                 state.step as f64 / spe as f64,
                 state.step,
                 state.elapsed_s,
                 lr,
-                avg[0],
-                avg[1],
-                avg[2],
-                avg[3],
-                metrics.chamfer,
-                metrics.energy,
-                metrics.mask_bce,
-                metrics.mask_accuracy,
-                metrics.throughput_error,
-                metrics.throughput_bias,
-                metrics.throughput_noise_floor,
-                metrics.throughput_rms_error,
-                metrics.radiance_error,
-                metrics.radiance_bias,
-                sps
+                &avg,
+                metrics.as_ref(),
+                sps,
             );
-            state.last_metrics = Some(metrics);
-            if epoch_end {
-                state.epoch_sums = [0.0; 4];
-                state.epoch_count = 0;
-            }
-            save_checkpoint(out, &cfg, &model, &optim, &state)?;
-            last_ckpt = Instant::now();
-            append_log(&log_path, &row)?;
-            let line = format!(
-                "epoch {:.2}: train {:.4}  held-out chamfer {:.4}  mask acc {:.2}%  throughput err {:.2}% (rms {:.2}%, bias {:+.2}%, floor {:.2}%)",
-                state.step as f64 / spe as f64,
-                avg[0],
-                metrics.chamfer,
-                100.0 * metrics.mask_accuracy,
-                100.0 * metrics.throughput_error,
-                100.0 * metrics.throughput_rms_error,
-                100.0 * metrics.throughput_bias,
-                100.0 * metrics.throughput_noise_floor,
-            );
-            // A hidden bar (no terminal, or --quiet) prints nothing: then the
-            // epoch lines go to stderr directly unless --quiet.
-            if !pb.is_hidden() {
-                pb.println(line);
-            } else if !opts.quiet {
-                eprintln!("{line}");
+            state.epoch_sums = [0.0; 4];
+            state.epoch_count = 0;
+            last_row_at = Instant::now();
+            last_row_step = state.step;
+            log.push_str(&row);
+            log.push('\n');
+            if let Some(metrics) = metrics {
+                state.last_metrics = Some(metrics);
+                save(&model, &optim, &state, &log)?;
+                last_saved = Some(state.step);
+                last_ckpt = Instant::now();
+                let line = format!(
+                    "epoch {:.2}: train {:.4}  held-out chamfer {:.4}  mask acc {:.2}%  throughput err {:.2}% (rms {:.2}%, bias {:+.2}%, floor {:.2}%)",
+                    state.step as f64 / spe as f64,
+                    avg[0],
+                    metrics.chamfer,
+                    100.0 * metrics.mask_accuracy,
+                    100.0 * metrics.throughput_error,
+                    100.0 * metrics.throughput_rms_error,
+                    100.0 * metrics.throughput_bias,
+                    100.0 * metrics.throughput_noise_floor,
+                );
+                // A hidden bar (no terminal, or --quiet) prints nothing: then the
+                // epoch lines go to stderr directly unless --quiet.
+                if !pb.is_hidden() {
+                    pb.println(line);
+                } else if !opts.quiet {
+                    eprintln!("{line}");
+                }
+            } else if last_saved.is_some() {
+                // The folder is this run's: show the row at once (the
+                // checkpoint's own log gets it at the next checkpoint).
+                append_live_row(&out.join(files::LOG), &row);
             }
             if over_time && !last {
                 stopped_by_time = true;
@@ -1084,7 +1227,8 @@ fn train_on(
             }
         } else if last_ckpt.elapsed().as_secs_f64() > CHECKPOINT_EVERY_S {
             state.elapsed_s = base_elapsed + t0.elapsed().as_secs_f64();
-            save_checkpoint(out, &cfg, &model, &optim, &state)?;
+            save(&model, &optim, &state, &log)?;
+            last_saved = Some(state.step);
             last_ckpt = Instant::now();
         }
     }
@@ -1102,63 +1246,5 @@ fn train_on(
         stopped_by_time,
         schedule_steps: total_steps,
         metrics: state.last_metrics,
-    })
-}
-
-/// A trained model loaded back from its directory, for baking and evaluation.
-pub struct LoadedModel {
-    pub dir: PathBuf,
-    pub model_config: ModelConfig,
-    pub train_config: TrainConfig,
-    pub meta: ModelMeta,
-    pub model: NpppModel,
-    pub state: TrainState,
-}
-
-/// Loads the latest checkpoint of a model directory (no autodiff) onto `device`.
-pub fn load_model_dir(dir: &Path, device: &Device) -> Result<LoadedModel> {
-    if !dir.is_dir() {
-        bail!("model directory {} does not exist", dir.display());
-    }
-    let mc = dir.join(files::MODEL_CONFIG);
-    let model_config = ModelConfig::load(&mc)
-        .map_err(|e| anyhow::anyhow!("cannot read {}: {e:?}", mc.display()))?;
-    model_config.validate()?;
-    let tc = dir.join(files::TRAIN_CONFIG);
-    let train_config = TrainConfig::load(&tc)
-        .map_err(|e| anyhow::anyhow!("cannot read {}: {e:?}", tc.display()))?;
-    let mp = dir.join(files::META);
-    let meta: ModelMeta = serde_json::from_str(
-        &fs::read_to_string(&mp).with_context(|| format!("reading {}", mp.display()))?,
-    )
-    .with_context(|| format!("{} is corrupt", mp.display()))?;
-    if meta.format != ModelMeta::FORMAT || meta.version != 1 {
-        bail!(
-            "{}: not an nppp model directory (format {:?} version {})",
-            mp.display(),
-            meta.format,
-            meta.version
-        );
-    }
-    if meta.input_features != INPUT_FEATURES {
-        bail!(
-            "{}: the model was trained on {} input features, this build computes {}",
-            mp.display(),
-            meta.input_features,
-            INPUT_FEATURES
-        );
-    }
-    let ckpt = checkpoint_dir(dir)
-        .with_context(|| format!("{} holds no checkpoint (train first)", dir.display()))?;
-    let state = read_state(&ckpt)?;
-    let device = device.clone().without_autodiff();
-    let model = load_weights(&ckpt, &model_config, &device)?;
-    Ok(LoadedModel {
-        dir: dir.to_path_buf(),
-        model_config,
-        train_config,
-        meta,
-        model,
-        state,
     })
 }

@@ -171,7 +171,7 @@ fn non_finite_loss_stops_and_keeps_the_last_good_checkpoint() {
         panic!("expected a non-finite error, got {msg}");
     };
     assert!(*step > 25 && *step <= 100, "{msg}");
-    assert_eq!(*last_good, 25);
+    assert_eq!(*last_good, Some(25));
     assert!(msg.contains(&format!("step {step}")), "{msg}");
     assert!(
         weights(&dir) == good,
@@ -181,6 +181,39 @@ fn non_finite_loss_stops_and_keeps_the_last_good_checkpoint() {
     let mut o = opts(&dir).tap_epochs(2);
     o.resume = true;
     assert_eq!(train_with_data(&o, info, data).unwrap().steps, 50);
+}
+
+/// A fresh run that diverges before its first checkpoint has nothing to
+/// resume: the message says so, and an older model in the folder
+/// (`--overwrite`) is untouched.
+#[test]
+fn divergence_before_the_first_checkpoint_says_there_is_none() {
+    let (info, data) = mirror_data(600, 8);
+    let fresh = tmp("nan-fresh");
+    let mut o = opts(&fresh).tap_epochs(4);
+    o.steps_per_epoch = Some(400);
+    o.lr = Some(1e30);
+    let err = train_with_data(&o, info.clone(), data.clone()).unwrap_err();
+    let msg = err.to_string();
+    let Some(TrainError::NonFinite { last_good, .. }) = err.downcast_ref::<TrainError>() else {
+        panic!("expected a non-finite error, got {msg}");
+    };
+    assert_eq!(*last_good, None, "{msg}");
+    assert!(
+        msg.contains("before this run saved any checkpoint"),
+        "{msg}"
+    );
+    assert!(!msg.contains("--resume"), "{msg}");
+    assert!(!fresh.join(files::CHECKPOINT).exists());
+
+    let dir = tmp("nan-overwrite");
+    train_with_data(&opts(&dir).tap_epochs(1), info.clone(), data.clone()).unwrap();
+    let good = weights(&dir);
+    let mut o = o.with_out(&dir);
+    o.overwrite = true;
+    let msg = train_with_data(&o, info, data).unwrap_err().to_string();
+    assert!(msg.contains("before --overwrite is untouched"), "{msg}");
+    assert!(weights(&dir) == good, "the old model changed");
 }
 
 #[test]
@@ -204,4 +237,55 @@ fn corrupt_checkpoint_is_an_error_not_a_panic() {
         .err()
         .unwrap();
     assert!(err.to_string().contains("does not exist"), "{err}");
+}
+
+/// The saved configuration says what ran: a file with fewer exits per ray
+/// than the default k trains with the file's k and records it; asking for
+/// more than the file has is an error.
+#[test]
+fn k_follows_the_data_file() {
+    let (info, data) = mirror_data(300, 4);
+    let dir = tmp("k-file");
+    let mut o = opts(&dir).tap_epochs(1);
+    o.k = None;
+    train_with_data(&o, info.clone(), data.clone()).unwrap();
+    let saved = fs::read_to_string(dir.join(files::CHECKPOINT).join(files::TRAIN_CONFIG)).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&saved).unwrap();
+    assert_eq!(v["k"], 4, "{saved}");
+    assert_eq!(
+        nppp_nn::TrainConfig::new(nppp_nn::ModelConfig::new()).k,
+        nppp_estimator::recipe::DEFAULT_K as usize,
+        "TrainConfig's default k is the recipe's"
+    );
+    let mut o = opts(&tmp("k-too-big")).tap_epochs(1);
+    o.k = Some(16);
+    let err = train_with_data(&o, info, data).unwrap_err().to_string();
+    assert!(
+        err.contains("--k 16") && err.contains("only 4 exits"),
+        "{err}"
+    );
+}
+
+/// Rows every `log_every` steps with the training losses; held-out columns
+/// filled at evaluations (`eval_every`, epoch ends and the last step).
+#[test]
+fn the_log_has_rows_every_n_steps_and_evaluations_at_intervals() {
+    let (info, data) = mirror_data(600, 8);
+    let dir = tmp("log-every");
+    let mut o = opts(&dir);
+    o.steps_per_epoch = Some(1000);
+    o.steps = Some(300);
+    o.log_every = 50;
+    o.eval_every = 150;
+    train_with_data(&o, info, data).unwrap();
+    let rows = log_rows(&dir);
+    let steps: Vec<&str> = rows.iter().map(|r| r[1].as_str()).collect();
+    assert_eq!(steps, ["50", "100", "150", "200", "250", "300"]);
+    let evaluated: Vec<bool> = rows.iter().map(|r| !r[8].is_empty()).collect();
+    assert_eq!(evaluated, [false, false, true, false, false, true]);
+    for r in &rows {
+        assert_eq!(r.len(), 19, "{r:?}");
+        let loss: f64 = r[4].parse().unwrap();
+        assert!(loss.is_finite() && loss > 0.0, "{r:?}");
+    }
 }

@@ -2,7 +2,6 @@
 //! sRGB PNG preview. Both go through a temporary file and a rename so an
 //! interrupted run never leaves a half-written image in place of a good one.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, thiserror::Error)]
@@ -46,91 +45,25 @@ impl Image {
     }
 }
 
-fn temp_path(path: &Path) -> PathBuf {
-    let mut name = path
-        .file_name()
-        .map(|n| n.to_os_string())
-        .unwrap_or_default();
-    name.push(format!(".{}.tmp", std::process::id()));
-    path.with_file_name(name)
-}
-
 /// Checks, before minutes of rendering, that an image can be written to
-/// `path`: it is not a folder, and the nearest existing ancestor folder
-/// accepts a new file (tried with the temporary file `write_atomically`
-/// would use, removed at once). Creates nothing that stays behind.
+/// `path` (see [`nppp_files::check_writable`]). Creates nothing that stays.
 pub fn check_writable(path: &Path) -> Result<(), ImageError> {
-    let err = |msg: String| ImageError::Write {
+    nppp_files::check_writable(path).map_err(|msg| ImageError::Write {
         path: path.into(),
         msg,
-    };
-    if path.file_name().is_none() || path.as_os_str().to_string_lossy().ends_with('/') {
-        return Err(err("names a folder, not a file".into()));
-    }
-    if path.is_dir() {
-        return Err(err("is a folder".into()));
-    }
-    let parent = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let mut dir = parent.as_path();
-    while !dir.exists() {
-        match dir.parent() {
-            Some(d) if !d.as_os_str().is_empty() => dir = d,
-            _ => {
-                dir = Path::new(".");
-                break;
-            }
-        }
-    }
-    if !dir.is_dir() {
-        return Err(err(format!(
-            "{} is not a folder, so the file cannot be created",
-            dir.display()
-        )));
-    }
-    let probe = if dir == parent.as_path() {
-        temp_path(path)
-    } else {
-        dir.join(format!(".nppp-write-check.{}.tmp", std::process::id()))
-    };
-    match std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .open(&probe)
-    {
-        Ok(_) => {
-            let _ = std::fs::remove_file(&probe);
-            Ok(())
-        }
-        Err(e) => Err(err(format!("cannot be written: {e}"))),
-    }
+    })
 }
 
-/// Writes `bytes_fn` to a temp file next to `path`, then renames it into place.
+/// Writes through `write` to a temporary file next to `path`, then renames
+/// it into place ([`nppp_files::write_atomic_via_path`]).
 pub fn write_atomically(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), String>,
 ) -> Result<(), ImageError> {
-    if let Some(dir) = path.parent()
-        && !dir.as_os_str().is_empty()
-    {
-        std::fs::create_dir_all(dir).map_err(|e| ImageError::Write {
-            path: path.into(),
-            msg: e.to_string(),
-        })?;
-    }
-    let tmp = temp_path(path);
-    let res = write(&tmp).and_then(|_| std::fs::rename(&tmp, path).map_err(|e| e.to_string()));
-    if let Err(msg) = res {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(ImageError::Write {
-            path: path.into(),
-            msg,
-        });
-    }
-    Ok(())
+    nppp_files::write_atomic_via_path(path, write).map_err(|e| ImageError::Write {
+        path: path.into(),
+        msg: e.to_string(),
+    })
 }
 
 pub fn write_exr(img: &Image, path: &Path) -> Result<(), ImageError> {
@@ -192,14 +125,67 @@ pub fn srgb_encode(x: f32) -> u8 {
     (y * 255.0 + 0.5) as u8
 }
 
+/// How a PNG preview maps linear radiance to display values. The EXR is
+/// never touched by it: it stays linear.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Preview {
+    /// Exposure in stops: radiance is multiplied by 2^EV first.
+    pub exposure_ev: f32,
+    pub tonemap: Tonemap,
+}
+
+impl Default for Preview {
+    fn default() -> Self {
+        Self {
+            exposure_ev: 0.0,
+            tonemap: Tonemap::Clamp,
+        }
+    }
+}
+
+/// The curve from exposed radiance to [0, 1] before sRGB encoding.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Tonemap {
+    /// Values above 1 clip to white (what the EXR's values are, exactly).
+    #[default]
+    Clamp,
+    /// Narkowicz' fit of the ACES filmic curve: highlights roll off instead
+    /// of clipping, shadows gain a little contrast.
+    Filmic,
+}
+
+impl Preview {
+    /// Display value in [0, 1] of a linear radiance channel.
+    pub fn map(&self, x: f32) -> f32 {
+        let x = if x.is_finite() { x.max(0.0) } else { 0.0 } * self.exposure_ev.exp2();
+        match self.tonemap {
+            Tonemap::Clamp => x.min(1.0),
+            Tonemap::Filmic => {
+                let (a, b, c, d, e) = (2.51, 0.03, 2.43, 0.59, 0.14);
+                ((x * (a * x + b)) / (x * (c * x + d) + e)).clamp(0.0, 1.0)
+            }
+        }
+    }
+}
+
+/// Writes the sRGB PNG preview (clamped, exposure 0).
 pub fn write_png(img: &Image, path: &Path) -> Result<(), ImageError> {
+    write_png_with(img, path, &Preview::default())
+}
+
+/// Writes an sRGB PNG preview with an exposure and a tone curve.
+pub fn write_png_with(img: &Image, path: &Path, preview: &Preview) -> Result<(), ImageError> {
     write_atomically(path, |tmp| {
         let f = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
         let mut enc = png::Encoder::new(std::io::BufWriter::new(f), img.width, img.height);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
         let mut w = enc.write_header().map_err(|e| e.to_string())?;
-        let data: Vec<u8> = img.pixels.iter().flat_map(|p| p.map(srgb_encode)).collect();
+        let data: Vec<u8> = img
+            .pixels
+            .iter()
+            .flat_map(|p| p.map(|x| srgb_encode(preview.map(x))))
+            .collect();
         w.write_image_data(&data).map_err(|e| e.to_string())?;
         w.finish().map_err(|e| e.to_string())?;
         Ok(())
@@ -208,8 +194,42 @@ pub fn write_png(img: &Image, path: &Path) -> Result<(), ImageError> {
 
 /// Writes a small text file atomically (reports, CSV).
 pub fn write_text(path: &Path, text: &str) -> Result<(), ImageError> {
-    write_atomically(path, |tmp| {
-        let mut f = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
-        f.write_all(text.as_bytes()).map_err(|e| e.to_string())
+    nppp_files::write_atomic(path, text.as_bytes()).map_err(|e| ImageError::Write {
+        path: path.into(),
+        msg: e.to_string(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn preview_exposure_and_curves() {
+        let clamp = Preview::default();
+        for x in [-1.0, 0.0, 0.25, 1.0, 7.0, f32::NAN, f32::INFINITY] {
+            let old = if x.is_finite() {
+                x.clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            assert_eq!(clamp.map(x), old, "{x}");
+        }
+        let up = Preview {
+            exposure_ev: 2.0,
+            tonemap: Tonemap::Clamp,
+        };
+        assert_eq!(up.map(0.1), 0.4);
+        let filmic = Preview {
+            exposure_ev: 0.0,
+            tonemap: Tonemap::Filmic,
+        };
+        let mut prev = -1.0;
+        for i in 0..1000 {
+            let y = filmic.map(i as f32 * 0.05);
+            assert!((0.0..=1.0).contains(&y) && y >= prev, "{i}: {y}");
+            prev = y;
+        }
+        assert!(filmic.map(50.0) > 0.99 && filmic.map(0.0) == 0.0);
+    }
 }

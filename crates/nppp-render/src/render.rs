@@ -5,7 +5,7 @@ use crate::estimator::EstimatorStats;
 use crate::image_io::Image;
 use crate::integrator::{IntegratorSettings, PathState, PixelSum, Wavefront, jitter};
 use crate::scene_data::RenderScene;
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use indicatif::{ProgressBar, ProgressDrawTarget};
 use nppp_geom::SampleRng;
 use rayon::prelude::*;
 use std::time::{Duration, Instant};
@@ -73,12 +73,10 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
     } else {
         ProgressDrawTarget::hidden()
     });
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {wide_bar} {percent}% {per_sec} samples ETA {eta}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    bar.set_style(nppp_files::progress_style(
+        "{spinner} [{elapsed_precise}] {wide_bar} {percent}% {rate} ETA {eta}",
+        "samples",
+    ));
     bar.enable_steady_tick(Duration::from_millis(250));
     let settings = IntegratorSettings {
         max_bounces: opts.max_bounces,

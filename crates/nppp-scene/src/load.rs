@@ -293,8 +293,20 @@ impl Cx<'_> {
             .map(|(name, v)| self.mesh(v, &join_key(&mesh_path, name)))
             .collect::<Res<Vec<Mesh>>>()?;
         self.check_world_extent(&camera, &meshes, &mesh_names, &instances)?;
+        // Validated above: every "obj" value is a non-empty string.
+        let obj_files = mesh_values
+            .iter()
+            .filter_map(|(_, v)| match v {
+                Json::Obj(fields) => fields.iter().find_map(|(k, v)| match (k.as_str(), v) {
+                    ("obj", Json::Str(rel)) => Some(self.dir.join(rel)),
+                    _ => None,
+                }),
+                _ => None,
+            })
+            .collect();
         Ok(Scene {
             path: self.file.to_path_buf(),
+            obj_files,
             camera,
             materials,
             material_names,

@@ -748,39 +748,21 @@ fn menger_sponge(level: u32) -> TriMesh {
 /// temporary file in the same folder and a rename, so a reader (or a make
 /// rule checking timestamps) never sees a half-written mesh.
 pub fn write_obj(mesh: &TriMesh, path: &Path) -> std::io::Result<()> {
-    let file_name = path.file_name().ok_or_else(|| {
-        std::io::Error::new(
-            std::io::ErrorKind::InvalidInput,
-            format!("{} names no file", path.display()),
-        )
-    })?;
-    let mut temp_name = std::ffi::OsString::from(".");
-    temp_name.push(file_name);
-    temp_name.push(format!(".tmp-{}", std::process::id()));
-    let temp = path.with_file_name(temp_name);
-    let result = (|| {
-        let mut out = std::io::BufWriter::new(std::fs::File::create(&temp)?);
-        writeln!(
-            out,
-            "# {} vertices, {} triangles",
-            mesh.positions.len(),
-            mesh.triangles.len()
-        )?;
-        // f32's Display is the shortest text that parses back to the same bits.
-        for p in &mesh.positions {
-            writeln!(out, "v {} {} {}", p.x, p.y, p.z)?;
-        }
-        for t in &mesh.triangles {
-            writeln!(out, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
-        }
-        let file = out.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        std::fs::rename(&temp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&temp);
+    let mut out = nppp_files::AtomicFile::create(path)?;
+    writeln!(
+        out,
+        "# {} vertices, {} triangles",
+        mesh.positions.len(),
+        mesh.triangles.len()
+    )?;
+    // f32's Display is the shortest text that parses back to the same bits.
+    for p in &mesh.positions {
+        writeln!(out, "v {} {} {}", p.x, p.y, p.z)?;
     }
-    result
+    for t in &mesh.triangles {
+        writeln!(out, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+    }
+    out.commit()
 }
 
 /// A triangle count for an error message: the saturated count of absurd

@@ -15,6 +15,57 @@ pub struct Camera {
     pub height: u32,
 }
 
+impl Camera {
+    /// Sets the image size from the command line's overrides, keeping the
+    /// framing: `scale` multiplies both sides; a `width` or `height` alone
+    /// sets that side and scales the other to keep the aspect ratio; both
+    /// set both (the vertical field of view is kept). Sides are rounded,
+    /// at least 1 and at most [`crate::MAX_IMAGE_SIDE`]; `Err` names the
+    /// flag that is out of range.
+    pub fn resize(
+        &mut self,
+        scale: Option<f64>,
+        width: Option<u32>,
+        height: Option<u32>,
+    ) -> Result<(), String> {
+        let max = crate::MAX_IMAGE_SIDE;
+        for (flag, v) in [("--width", width), ("--height", height)] {
+            if v == Some(0) {
+                return Err(format!("{flag} 0: an image is at least 1 pixel on a side"));
+            }
+        }
+        let (w0, h0) = (self.width as f64, self.height as f64);
+        let (w, h) = match (scale, width, height) {
+            (Some(_), Some(_), _) | (Some(_), _, Some(_)) => {
+                return Err("--scale and --width/--height: give one or the other".into());
+            }
+            (Some(s), None, None) => {
+                if !(s.is_finite() && s > 0.0) {
+                    return Err(format!("--scale {s}: must be a positive number"));
+                }
+                (w0 * s, h0 * s)
+            }
+            (None, Some(w), None) => (w as f64, h0 * w as f64 / w0),
+            (None, None, Some(h)) => (w0 * h as f64 / h0, h as f64),
+            (None, Some(w), Some(h)) => (w as f64, h as f64),
+            (None, None, None) => return Ok(()),
+        };
+        let side = |x: f64, what: &str| -> Result<u32, String> {
+            let r = x.round().max(1.0);
+            if r > max as f64 {
+                return Err(format!(
+                    "the image would be {} pixels {what}; images are 1 to {max} pixels on a side",
+                    r
+                ));
+            }
+            Ok(r as u32)
+        };
+        self.width = side(w, "wide")?;
+        self.height = side(h, "high")?;
+        Ok(())
+    }
+}
+
 /// A material; the set is closed so the integrator can match on it per bounce.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Material {
@@ -106,6 +157,9 @@ impl Default for RenderSettings {
 pub struct Scene {
     /// The file this scene was read from (for messages and relative paths).
     pub path: PathBuf,
+    /// The OBJ files its meshes were read from: inputs no command may
+    /// overwrite (estimator files are in `instances[i].estimator`).
+    pub obj_files: Vec<PathBuf>,
     pub camera: Camera,
     pub materials: Vec<Material>,
     pub material_names: Vec<String>,
@@ -113,4 +167,78 @@ pub struct Scene {
     pub mesh_names: Vec<String>,
     pub instances: Vec<Instance>,
     pub render: RenderSettings,
+}
+
+impl Scene {
+    /// Every file this scene was read from, named for a message: the scene
+    /// file, its OBJ meshes and its instances' estimator files. Commands
+    /// refuse to write an output over any of them.
+    pub fn input_files(&self) -> Vec<(String, PathBuf)> {
+        let mut v = vec![("the scene file".to_string(), self.path.clone())];
+        for f in &self.obj_files {
+            v.push((format!("a mesh of the scene ({})", f.display()), f.clone()));
+        }
+        for (i, inst) in self.instances.iter().enumerate() {
+            if let Some(e) = &inst.estimator {
+                v.push((format!("instances[{i}].estimator"), e.clone()));
+            }
+        }
+        v
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cam(w: u32, h: u32) -> Camera {
+        Camera {
+            position: Vec3::ZERO,
+            look_at: Vec3::Z,
+            up: Vec3::Y,
+            fov_y_deg: 40.0,
+            width: w,
+            height: h,
+        }
+    }
+
+    #[test]
+    fn resize_keeps_the_aspect_ratio() {
+        let mut c = cam(256, 128);
+        c.resize(Some(0.5), None, None).unwrap();
+        assert_eq!((c.width, c.height), (128, 64));
+        let mut c = cam(256, 128);
+        c.resize(None, Some(100), None).unwrap();
+        assert_eq!((c.width, c.height), (100, 50));
+        let mut c = cam(256, 128);
+        c.resize(None, None, Some(300)).unwrap();
+        assert_eq!((c.width, c.height), (600, 300));
+        let mut c = cam(256, 128);
+        c.resize(None, Some(7), Some(9)).unwrap();
+        assert_eq!((c.width, c.height), (7, 9));
+        let mut c = cam(3, 3);
+        c.resize(Some(1e-9), None, None).unwrap();
+        assert_eq!((c.width, c.height), (1, 1));
+        let mut c = cam(256, 128);
+        c.resize(None, None, None).unwrap();
+        assert_eq!((c.width, c.height), (256, 128));
+    }
+
+    #[test]
+    fn resize_refuses_what_cannot_render() {
+        for (s, w, h, needle) in [
+            (Some(0.0), None, None, "--scale"),
+            (Some(f64::NAN), None, None, "--scale"),
+            (Some(1e9), None, None, "pixels wide"),
+            (None, Some(0), None, "--width 0"),
+            (None, None, Some(0), "--height 0"),
+            (None, Some(16385), Some(4), "pixels wide"),
+            (Some(2.0), Some(4), None, "one or the other"),
+        ] {
+            let mut c = cam(256, 128);
+            let e = c.resize(s, w, h).unwrap_err();
+            assert!(e.contains(needle), "{e}");
+            assert_eq!((c.width, c.height), (256, 128));
+        }
+    }
 }

@@ -1,0 +1,699 @@
+//! The training side never destroys a user's file (gen, train, bake and the
+//! estimator side of render), through the real binary: outputs that name an
+//! input are refused before any work; a model directory survives a kill at
+//! every step of a checkpoint write (`NPPP_CRASH_AT`, nppp-files' crash
+//! points: the process aborts there, as a kill would leave it) and an
+//! interrupted `--overwrite`; damaged checkpoints are refused by checksum;
+//! flags and data files that claim absurd memory get a message, not an
+//! abort on allocation. docs/robustness.md ("Training side") lists the cases.
+
+use nppp_estimator::{DatasetHeader, DatasetWriter, Exit, RayRecord, WriterOptions};
+use nppp_geom::{BoundingSphere, SpherePair, Vec3};
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("nppp-train-files-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn nppp_env<I, S>(args: I, env: &[(&str, &str)]) -> Output
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let mut c = Command::new(env!("CARGO_BIN_EXE_nppp"));
+    c.args(args).env("RUST_BACKTRACE", "0");
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().expect("cannot run nppp")
+}
+
+fn nppp<I, S>(args: I) -> Output
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    nppp_env(args, &[])
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn assert_ok(what: &str, o: &Output) {
+    assert!(o.status.success(), "{what} failed:\n{}", stderr(o));
+}
+
+/// Exit status 1, no panic, every needle on stderr.
+fn assert_error(what: &str, o: &Output, needles: &[&str]) {
+    let err = stderr(o);
+    assert!(!err.contains("panicked"), "{what}: panicked:\n{err}");
+    assert_eq!(
+        o.status.code(),
+        Some(1),
+        "{what}: status {:?}:\n{err}",
+        o.status
+    );
+    for n in needles {
+        assert!(err.contains(n), "{what}: stderr lacks {n:?}:\n{err}");
+    }
+}
+
+/// A small valid data file: `rays` rays of a unit sphere, half of them hits
+/// with `k` exits each (the exits vary, so it compresses like real data).
+fn write_data(path: &Path, rays: u32, k: u32) {
+    let header = DatasetHeader {
+        mesh_name: "ball".into(),
+        mesh_hash: 1,
+        material_name: "white".into(),
+        material_hash: 2,
+        material_json: r#"{"type": "diffuse", "albedo": [0.7, 0.7, 0.7]}"#.into(),
+        sphere: BoundingSphere {
+            center: Vec3::ZERO,
+            radius: 1.0,
+        },
+        k,
+        seed: 0,
+        max_internal_bounces: 8,
+    };
+    let mut wr = DatasetWriter::create_with(path, header, WriterOptions::default()).unwrap();
+    for i in 0..rays {
+        let f = (i as f32 + 0.5) / rays as f32;
+        let hit = i % 2 == 0;
+        let exits = if hit {
+            (0..k)
+                .map(|j| {
+                    let a = f * 6.0 + j as f32 * 0.37;
+                    Exit {
+                        position: Vec3::new(a.cos(), a.sin(), 0.3).normalize(),
+                        direction: Vec3::new(a.sin(), 0.2, a.cos()).normalize(),
+                        throughput: Vec3::splat(0.2 + 0.5 * f),
+                        radiance: Vec3::ZERO,
+                        bounces: 1 + j % 3,
+                    }
+                })
+                .collect()
+        } else {
+            vec![]
+        };
+        wr.write(&RayRecord {
+            pair: SpherePair([f, (f * 7.0) % 1.0, 1.0 - f, (f * 3.0) % 1.0]),
+            hit,
+            exits,
+        })
+        .unwrap();
+    }
+    wr.finish().unwrap();
+}
+
+/// Flags of a seconds-long training run (NdArray, tiny widths, 25-step epochs).
+fn small_train<'a>(data: &'a Path, out: &'a Path, epochs: &'a str) -> Vec<&'a OsStr> {
+    let mut v: Vec<&OsStr> = vec!["train".as_ref(), "--data".as_ref(), data.as_os_str()];
+    v.extend(
+        [
+            "--backend",
+            "ndarray",
+            "--quiet",
+            "--minutes",
+            "0",
+            "--batch",
+            "16",
+            "--k",
+            "4",
+            "--mask-batch",
+            "64",
+            "--encoder-width",
+            "32",
+            "--decoder-width",
+            "32",
+            "--mask-width",
+            "32",
+            "--latent-dim",
+            "8",
+            "--eval-rays",
+            "16",
+            "--holdout-every",
+            "10",
+            "--steps-per-epoch",
+            "25",
+            "--seed",
+            "3",
+            "--epochs",
+        ]
+        .iter()
+        .map(OsStr::new),
+    );
+    v.push(epochs.as_ref());
+    v.push("--out".as_ref());
+    v.push(out.as_os_str());
+    v
+}
+
+/// Data and a model trained for one epoch (one checkpoint) in `dir`.
+fn trained(dir: &Path) -> (PathBuf, PathBuf) {
+    let data = dir.join("data.nppd");
+    write_data(&data, 400, 4);
+    let model = dir.join("model");
+    assert_ok("train", &nppp(small_train(&data, &model, "1")));
+    (data, model)
+}
+
+fn bake_args<'a>(model: &'a Path, out: &'a Path, extra: &[&'a str]) -> Vec<&'a OsStr> {
+    let mut v: Vec<&OsStr> = vec![
+        "bake".as_ref(),
+        "--model".as_ref(),
+        model.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ];
+    v.extend(
+        [
+            "--latent-grid",
+            "4",
+            "--mask-grid",
+            "4",
+            "--backend",
+            "ndarray",
+            "--quiet",
+            "--eval-rays",
+            "16",
+        ]
+        .iter()
+        .map(OsStr::new),
+    );
+    v.extend(extra.iter().map(OsStr::new));
+    v
+}
+
+/// Every file under `dir` (relative name, bytes), sorted.
+fn snapshot(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    fn walk(base: &Path, d: &Path, out: &mut Vec<(String, Vec<u8>)>) {
+        for e in std::fs::read_dir(d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(base, &p, out);
+            } else {
+                let rel = p.strip_prefix(base).unwrap().to_string_lossy().into_owned();
+                out.push((rel, std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    let mut v = Vec::new();
+    walk(dir, dir, &mut v);
+    v.sort();
+    v
+}
+
+fn state_step(model: &Path) -> u64 {
+    let s = std::fs::read_to_string(model.join("checkpoint/state.json")).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&s).unwrap();
+    v["step"].as_u64().unwrap()
+}
+
+// ---------------------------------------------------------------------------
+// Outputs that name an input
+
+#[test]
+fn bake_never_writes_over_its_inputs_and_writes_last() {
+    let dir = scratch("bake-inputs");
+    let (data, model) = trained(&dir);
+    let data_before = std::fs::read(&data).unwrap();
+    let model_before = snapshot(&model);
+
+    // The typo of .nppd for .nppp: refused by name, before any work.
+    let o = nppp(bake_args(&model, &data, &[]));
+    assert_error("bake --out DATA.nppd", &o, &["--out", "*.nppp"]);
+    // A data file that happens to be named .nppp is still an input.
+    let data_nppp = dir.join("data-copy.nppp");
+    std::fs::copy(&data, &data_nppp).unwrap();
+    let o = nppp(bake_args(
+        &model,
+        &data_nppp,
+        &["--data", data_nppp.to_str().unwrap()],
+    ));
+    assert_error("bake --out = --data", &o, &["is the training data"]);
+    assert_eq!(std::fs::read(&data_nppp).unwrap(), data_before);
+    // Into the checkpoint, which training replaces wholesale.
+    let inside = model.join("checkpoint/x.nppp");
+    let o = nppp(bake_args(&model, &inside, &[]));
+    assert_error("bake --out inside checkpoint", &o, &["checkpoint/"]);
+    assert_eq!(std::fs::read(&data).unwrap(), data_before);
+    assert_eq!(
+        snapshot(&model),
+        model_before,
+        "the model directory changed"
+    );
+
+    // An existing estimator survives a bake that fails after the grids
+    // (its held-out data is missing): bake evaluates first, writes last.
+    let est = dir.join("est.nppp");
+    std::fs::write(&est, b"the user's previous estimator").unwrap();
+    let missing = dir.join("moved-away.nppd");
+    let o = nppp(bake_args(
+        &model,
+        &est,
+        &["--data", missing.to_str().unwrap()],
+    ));
+    assert_error(
+        "bake with missing data",
+        &o,
+        &["moved-away.nppd", "--no-eval"],
+    );
+    assert_eq!(
+        std::fs::read(&est).unwrap(),
+        b"the user's previous estimator"
+    );
+
+    // And a good bake replaces it.
+    assert_ok("bake", &nppp(bake_args(&model, &est, &[])));
+    assert!(std::fs::read(&est).unwrap().starts_with(b"NPPPEST"));
+    let names: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".tmp"))
+        .collect();
+    assert!(names.is_empty(), "temporary files left: {names:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn gen_never_writes_over_its_scene_or_mesh() {
+    let dir = scratch("gen-inputs");
+    let obj = dir.join("ball.obj");
+    let obj_text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
+    std::fs::write(&obj, obj_text).unwrap();
+    let scene = dir.join("scene.json");
+    let scene_text = r#"{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0],
+        "fov_y": 40, "width": 8, "height": 8},
+      "materials": {"m": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+      "meshes": {"ball": {"obj": "ball.obj"}},
+      "instances": [{"mesh": "ball", "material": "m"}]}"#;
+    std::fs::write(&scene, scene_text).unwrap();
+    let run = |out: &Path, source: &[&str]| {
+        let mut a: Vec<&OsStr> = vec!["gen".as_ref()];
+        a.extend(source.iter().map(OsStr::new));
+        a.extend(
+            ["--rays", "100", "--k", "2", "--out"]
+                .iter()
+                .map(OsStr::new),
+        );
+        a.push(out.as_os_str());
+        nppp(a)
+    };
+    let sc = scene.to_str().unwrap();
+    let ob = obj.to_str().unwrap();
+    let o = run(&scene, &["--scene", sc, "--instance", "0"]);
+    assert_error("gen --out SCENE", &o, &["--out", "*.nppd"]);
+    let o = run(&obj, &["--mesh", ob, "--material", "white"]);
+    assert_error("gen --out MESH", &o, &["--out", "*.nppd"]);
+    // An OBJ that happens to be named .nppd is still the scene's mesh.
+    let odd = dir.join("odd.nppd");
+    std::fs::write(&odd, obj_text).unwrap();
+    std::fs::write(&scene, scene_text.replace("ball.obj", "odd.nppd")).unwrap();
+    let o = run(&odd, &["--scene", sc, "--instance", "0"]);
+    assert_error("gen --out = the scene's mesh", &o, &["a mesh of the scene"]);
+    let o = run(
+        &odd,
+        &["--mesh", odd.to_str().unwrap(), "--material", "white"],
+    );
+    assert_error("gen --out = --mesh", &o, &["--mesh OBJ"]);
+    assert_eq!(std::fs::read_to_string(&obj).unwrap(), obj_text);
+    assert_eq!(std::fs::read_to_string(&odd).unwrap(), obj_text);
+    assert!(
+        std::fs::read_to_string(&scene)
+            .unwrap()
+            .contains("odd.nppd")
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn render_never_writes_over_its_reference() {
+    let dir = scratch("render-ref");
+    let scene =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data/scenes/cornell-materials.json");
+    let reference = dir.join("ref.exr");
+    let small = ["--spp", "1", "--max-bounces", "1", "--quiet"];
+    let mut a: Vec<&OsStr> = vec![
+        "render".as_ref(),
+        scene.as_os_str(),
+        "--out".as_ref(),
+        reference.as_os_str(),
+    ];
+    a.extend(small.iter().map(OsStr::new));
+    assert_ok("render ref", &nppp(&a));
+    let before = std::fs::read(&reference).unwrap();
+    let spelled = dir.join("sub/../ref.exr");
+    std::fs::create_dir_all(dir.join("sub")).unwrap();
+    a.extend(["--reference".as_ref(), spelled.as_os_str()]);
+    let o = nppp(&a);
+    assert_error(
+        "render --out X --reference X",
+        &o,
+        &["--out", "the --reference image"],
+    );
+    assert_eq!(std::fs::read(&reference).unwrap(), before);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+// ---------------------------------------------------------------------------
+// Model directories: kills, --overwrite, checksums
+
+/// A kill at each step of a checkpoint write (here: the resumed run's first
+/// checkpoint) leaves a model that both `bake` and `--resume` use.
+#[test]
+fn a_kill_at_any_step_of_a_checkpoint_leaves_a_usable_model() {
+    let dir = scratch("kill");
+    let (data, model) = trained(&dir);
+    let points = [
+        "checkpoint:weights-written",
+        "before-rename:checkpoint.tmp/train_config.json",
+        "before-rename:checkpoint.tmp/state.json",
+        "checkpoint:complete",
+        "checkpoint:between-renames",
+        "checkpoint:swapped",
+        "before-rename:model/meta.json",
+        "before-rename:model/train_config.json",
+        "before-rename:model/log.csv",
+    ];
+    for point in points {
+        let case = dir.join(point.replace([':', '/', '.'], "_"));
+        let m = case.join("model");
+        std::fs::create_dir_all(&case).unwrap();
+        for (rel, bytes) in snapshot(&model) {
+            let p = m.join(rel);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(p, bytes).unwrap();
+        }
+        let mut args = small_train(&data, &m, "2");
+        args.push("--resume".as_ref());
+        let o = nppp_env(&args, &[("NPPP_CRASH_AT", point)]);
+        assert!(
+            !o.status.success(),
+            "{point}: the run was not killed:\n{}",
+            stderr(&o)
+        );
+        assert!(
+            stderr(&o).contains(point),
+            "{point}: never reached:\n{}",
+            stderr(&o)
+        );
+        // The model is usable as it is: bake it, then resume it to the end.
+        let est = case.join("e.nppp");
+        assert_ok(
+            &format!("bake after a kill at {point}"),
+            &nppp(bake_args(&m, &est, &["--no-eval"])),
+        );
+        let o = nppp(&args);
+        assert_ok(&format!("--resume after a kill at {point}"), &o);
+        assert_eq!(state_step(&m), 50, "{point}");
+        let log = std::fs::read_to_string(m.join("log.csv")).unwrap();
+        assert_eq!(log.lines().count(), 3, "{point}: log\n{log}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// What a kill during the old in-place rewrite of train_config.json left:
+/// an empty file beside a complete checkpoint. The checkpoint's own copy is
+/// what resume and bake read.
+#[test]
+fn an_emptied_config_beside_the_checkpoint_does_not_matter() {
+    let dir = scratch("empty-config");
+    let (data, model) = trained(&dir);
+    for f in [
+        "train_config.json",
+        "model_config.json",
+        "meta.json",
+        "log.csv",
+    ] {
+        std::fs::write(model.join(f), b"").unwrap();
+    }
+    assert_ok("bake", &nppp(bake_args(&model, &dir.join("e.nppp"), &[])));
+    let mut args = small_train(&data, &model, "2");
+    args.push("--resume".as_ref());
+    assert_ok("--resume", &nppp(&args));
+    assert_eq!(state_step(&model), 50);
+    // The copies are refreshed by the next checkpoint.
+    assert!(
+        std::fs::read_to_string(model.join("train_config.json"))
+            .unwrap()
+            .contains("\"batch\"")
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `--overwrite` keeps the old model until the new run has saved a
+/// checkpoint: a kill before that loses nothing.
+#[test]
+fn an_interrupted_overwrite_keeps_the_old_model() {
+    let dir = scratch("overwrite");
+    let (data, model) = trained(&dir);
+    let before = snapshot(&model);
+    for point in [
+        "checkpoint:weights-written",
+        "checkpoint:complete",
+        "before-rename:checkpoint.tmp/state.json",
+    ] {
+        let mut args = small_train(&data, &model, "3");
+        args.push("--overwrite".as_ref());
+        args.extend(["--seed", "9"].iter().map(OsStr::new));
+        let o = nppp_env(&args, &[("NPPP_CRASH_AT", point)]);
+        assert!(!o.status.success(), "{point}: not killed");
+        let mut after = snapshot(&model);
+        // Debris of the interrupted write may remain in checkpoint.tmp/; it is never read.
+        after.retain(|(n, _)| !n.starts_with("checkpoint.tmp"));
+        assert_eq!(after, before, "{point}: the old model changed");
+        assert_ok(
+            "bake the old model",
+            &nppp(bake_args(&model, &dir.join("e.nppp"), &["--no-eval"])),
+        );
+    }
+    // A completed overwrite replaces it.
+    let mut args = small_train(&data, &model, "1");
+    args.push("--overwrite".as_ref());
+    args.extend(["--seed", "9"].iter().map(OsStr::new));
+    assert_ok("--overwrite", &nppp(&args));
+    assert_ne!(snapshot(&model), before);
+    assert!(!model.join("checkpoint.tmp").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn damaged_checkpoints_are_refused_by_checksum() {
+    let dir = scratch("checksum");
+    let (data, model) = trained(&dir);
+    let w = model.join("checkpoint/model.bpk");
+    let good = std::fs::read(&w).unwrap();
+    let n = good.len();
+    for at in [0, n / 3, n / 2, n - 1] {
+        let mut bad = good.clone();
+        bad[at] ^= 0x10;
+        std::fs::write(&w, &bad).unwrap();
+        let o = nppp(bake_args(&model, &dir.join("e.nppp"), &["--no-eval"]));
+        assert_error(
+            &format!("bake, byte {at} flipped"),
+            &o,
+            &["model.bpk", "corrupt"],
+        );
+        let mut args = small_train(&data, &model, "2");
+        args.push("--resume".as_ref());
+        let o = nppp(&args);
+        assert_error(
+            &format!("resume, byte {at} flipped"),
+            &o,
+            &["model.bpk", "corrupt"],
+        );
+    }
+    std::fs::write(&w, &good).unwrap();
+    // An old (version 1) checkpoint is named as such, with the command that rebuilds it.
+    let sp = model.join("checkpoint/state.json");
+    let state = std::fs::read_to_string(&sp).unwrap();
+    std::fs::write(&sp, state.replace("\"version\": 2", "\"version\": 1")).unwrap();
+    let o = nppp(bake_args(&model, &dir.join("e.nppp"), &["--no-eval"]));
+    assert_error(
+        "v1 checkpoint",
+        &o,
+        &["version 1", "nppp train", "--overwrite"],
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn train_refuses_a_folder_that_is_not_a_model() {
+    let dir = scratch("not-a-model");
+    let data = dir.join("data.nppd");
+    write_data(&data, 400, 4);
+    let mine = dir.join("mine");
+    std::fs::create_dir_all(mine.join("checkpoint")).unwrap();
+    std::fs::write(mine.join("notes.txt"), b"my notes").unwrap();
+    std::fs::write(mine.join("checkpoint/mine.bin"), b"my file").unwrap();
+    let before = snapshot(&mine);
+    let mut args = small_train(&data, &mine, "1");
+    args.push("--overwrite".as_ref());
+    let o = nppp(&args);
+    assert_error(
+        "train --out USER-FOLDER",
+        &o,
+        &["notes.txt", "not a model directory"],
+    );
+    assert_eq!(snapshot(&mine), before);
+    // --out naming the data file.
+    let o = nppp(small_train(&data, &data, "1"));
+    assert_error("train --out DATA", &o, &["is a file"]);
+    // --data naming a folder.
+    let o = nppp(small_train(&dir, &dir.join("m"), "1"));
+    assert_error("train --data FOLDER", &o, &["is a directory"]);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+// ---------------------------------------------------------------------------
+// Memory: flags and files that claim too much
+
+#[test]
+fn absurd_batches_are_refused_with_a_message() {
+    let dir = scratch("batches");
+    let data = dir.join("data.nppd");
+    write_data(&data, 400, 4);
+    for (flag, value, needle) in [
+        (
+            "--batch",
+            "18446744073709551615",
+            "--batch 18446744073709551615",
+        ),
+        ("--batch", "100000000", "--batch 100000000"),
+        ("--mask-batch", "1000000000", "--mask-batch 1000000000"),
+    ] {
+        let out = dir.join("m");
+        let mut args = small_train(&data, &out, "1");
+        // clap refuses a repeated flag: replace the value in place.
+        let i = args.iter().position(|a| *a == OsStr::new(flag)).unwrap();
+        args[i + 1] = OsStr::new(value);
+        let o = nppp(&args);
+        assert_error(&format!("{flag} {value}"), &o, &[needle, "memory"]);
+        assert!(!out.exists(), "{flag} {value}: wrote {}", out.display());
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A small file whose chunks inflate to gigabytes (k = 2^20 identical
+/// exits per hit): refused from its header and index, before reading.
+#[test]
+fn a_data_file_that_claims_too_much_is_refused() {
+    let dir = scratch("claims");
+    let data = dir.join("bomb.nppd");
+    let k = 1u32 << 20;
+    let header = DatasetHeader {
+        mesh_name: "ball".into(),
+        mesh_hash: 1,
+        material_name: "white".into(),
+        material_hash: 2,
+        material_json: "{}".into(),
+        sphere: BoundingSphere {
+            center: Vec3::ZERO,
+            radius: 1.0,
+        },
+        k,
+        seed: 0,
+        max_internal_bounces: 8,
+    };
+    let mut wr = DatasetWriter::create_with(&data, header, WriterOptions::default()).unwrap();
+    let exit = Exit {
+        position: Vec3::Z,
+        direction: Vec3::Z,
+        throughput: Vec3::ZERO,
+        radiance: Vec3::ZERO,
+        bounces: 1,
+    };
+    for i in 0..4u32 {
+        let f = i as f32 / 4.0;
+        wr.write(&RayRecord {
+            pair: SpherePair([f, 0.5, 0.5, 0.5]),
+            hit: true,
+            exits: vec![exit; k as usize],
+        })
+        .unwrap();
+    }
+    wr.finish().unwrap();
+    let size = std::fs::metadata(&data).unwrap().len();
+    assert!(size < 2 << 20, "the forged file is {size} bytes");
+    let out = dir.join("m");
+    let o = nppp(small_train(&data, &out, "1"));
+    assert_error("train on a bomb", &o, &["bomb.nppd", "damaged or forged"]);
+    assert!(!out.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+// ---------------------------------------------------------------------------
+// Interrupting a real run
+
+/// Ctrl-C (SIGINT) and SIGTERM in the middle of a long run: a checkpoint of
+/// the step reached is saved, the message says how to resume, the status is
+/// 1, and `--resume` continues from there.
+#[test]
+fn an_interrupted_run_saves_a_checkpoint_and_says_how_to_resume() {
+    use std::io::{BufRead, BufReader};
+    use std::process::Stdio;
+    let dir = scratch("interrupt");
+    let data = dir.join("data.nppd");
+    write_data(&data, 400, 4);
+    for signal in ["INT", "TERM"] {
+        let model = dir.join(format!("model-{signal}"));
+        let mut args = small_train(&data, &model, "100000");
+        args.retain(|a| *a != OsStr::new("--quiet"));
+        let mut child = Command::new(env!("CARGO_BIN_EXE_nppp"))
+            .args(&args)
+            .stderr(Stdio::piped())
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap();
+        // Wait for the first epoch line: the loop is running.
+        let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+        let mut seen = String::new();
+        for line in lines.by_ref() {
+            let line = line.unwrap();
+            seen.push_str(&line);
+            seen.push('\n');
+            if line.starts_with("epoch") {
+                break;
+            }
+        }
+        let killed = Command::new("kill")
+            .args([format!("-{signal}"), child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        for line in lines {
+            seen.push_str(&line.unwrap());
+            seen.push('\n');
+        }
+        let status = child.wait().unwrap();
+        assert_eq!(status.code(), Some(1), "SIG{signal}: {status:?}\n{seen}");
+        assert!(
+            seen.contains("interrupted: a checkpoint of step"),
+            "SIG{signal}:\n{seen}"
+        );
+        assert!(seen.contains("--resume"), "SIG{signal}:\n{seen}");
+        let step = state_step(&model);
+        assert!(step >= 25, "SIG{signal}: saved step {step}");
+        assert!(
+            seen.contains(&format!("step {step} ")),
+            "SIG{signal}: step {step} not named:\n{seen}"
+        );
+        // It resumes from there.
+        let stop = (step + 5).to_string();
+        let mut args = small_train(&data, &model, "100000");
+        args.extend(
+            ["--resume", "--stop-after", stop.as_str()]
+                .iter()
+                .map(OsStr::new),
+        );
+        assert_ok("--resume after an interrupt", &nppp(&args));
+        assert_eq!(state_step(&model), step + 5);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

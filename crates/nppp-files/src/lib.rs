@@ -1,0 +1,492 @@
+//! Writing files without ever losing one: the single home of the pipeline's
+//! file-safety rules, used by every command that writes (render, gen, train,
+//! bake, mesh, bench).
+//!
+//! - [`AtomicFile`] / [`write_atomic`]: a file is written to a hidden
+//!   temporary name in the same folder, flushed to disk, then renamed over
+//!   the target. A reader (or a kill at any instant) sees the old file or the
+//!   new one, never a half-written one; a writer dropped before
+//!   [`AtomicFile::commit`] removes its temporary file.
+//! - [`ensure_not_input`]: an output path that names one of the command's
+//!   inputs (the same file, under any spelling or hard link) is refused
+//!   before any work, so a slip of the flags cannot overwrite the training
+//!   data, a scene or a reference image.
+//! - [`crash_point`]: named points where the tests kill the process
+//!   (`NPPP_CRASH_AT=name`), to prove that every file survives a kill at
+//!   every step of a multi-file write (a model checkpoint).
+//! - [`available_memory`]: what a command may plan to allocate, so that a
+//!   flag or a file that claims gigabytes is refused with a message instead
+//!   of aborting on allocation.
+//! - [`format_bytes`], [`format_rate`] and [`progress_style`]: the one way
+//!   every command prints sizes and rates (summaries and progress bars say
+//!   `0.229 M samples/s` alike).
+
+use std::ffi::OsString;
+use std::fs::File;
+use std::io::{self, BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+/// The environment variable that names a crash point (tests only).
+pub const CRASH_ENV: &str = "NPPP_CRASH_AT";
+
+/// `dir/.name.<pid>.tmp`: in the target's own folder (a rename must not
+/// cross filesystems), hidden, and unique per process.
+pub fn temp_path(path: &Path) -> PathBuf {
+    let mut name = OsString::from(".");
+    name.push(path.file_name().unwrap_or_else(|| "out".as_ref()));
+    name.push(format!(".{}.tmp", std::process::id()));
+    path.with_file_name(name)
+}
+
+/// Creates the folder that will hold `path`, if it has one and it is missing.
+pub fn create_parent(path: &Path) -> io::Result<()> {
+    match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => std::fs::create_dir_all(d),
+        _ => Ok(()),
+    }
+}
+
+/// A file being written under a temporary name; [`Self::commit`] moves it
+/// into place. Dropped without commit (an error, a panic), it removes the
+/// temporary file and leaves the target as it was.
+pub struct AtomicFile {
+    path: PathBuf,
+    tmp: PathBuf,
+    file: Option<BufWriter<File>>,
+}
+
+impl AtomicFile {
+    /// Starts writing `path` (its folder is created if missing).
+    pub fn create(path: &Path) -> io::Result<Self> {
+        if path.file_name().is_none() {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!("{} names a folder, not a file", path.display()),
+            ));
+        }
+        create_parent(path)?;
+        let tmp = temp_path(path);
+        let file = File::create(&tmp)?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            tmp,
+            file: Some(BufWriter::with_capacity(1 << 20, file)),
+        })
+    }
+
+    /// The final path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Flushes the data to disk and renames the file into place.
+    pub fn commit(mut self) -> io::Result<()> {
+        let w = self
+            .file
+            .take()
+            .ok_or_else(|| io::Error::other("already committed"))?;
+        let result = (|| {
+            let file = w.into_inner().map_err(|e| e.into_error())?;
+            file.sync_all()?;
+            drop(file);
+            crash_point(&format!("before-rename:{}", file_label(&self.path)));
+            std::fs::rename(&self.tmp, &self.path)?;
+            sync_parent(&self.path);
+            Ok(())
+        })();
+        if result.is_err() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+        result
+    }
+}
+
+impl Write for AtomicFile {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        match &mut self.file {
+            Some(f) => f.write(buf),
+            None => Err(io::Error::other("already committed")),
+        }
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> io::Result<()> {
+        match &mut self.file {
+            Some(f) => f.write_all(buf),
+            None => Err(io::Error::other("already committed")),
+        }
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        match &mut self.file {
+            Some(f) => f.flush(),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Drop for AtomicFile {
+    fn drop(&mut self) {
+        if self.file.take().is_some() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// Replaces `path` with `bytes` atomically (see [`AtomicFile`]).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    let mut f = AtomicFile::create(path)?;
+    f.write_all(bytes)?;
+    f.commit()
+}
+
+/// Replaces `path` atomically with what `write` puts at the temporary path
+/// it is given (for writers that insist on opening a path themselves, such
+/// as the EXR encoder). The temporary file is removed on any error.
+pub fn write_atomic_via_path<E: std::fmt::Display>(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), E>,
+) -> io::Result<()> {
+    if path.file_name().is_none() {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!("{} names a folder, not a file", path.display()),
+        ));
+    }
+    create_parent(path)?;
+    let tmp = temp_path(path);
+    let result = (|| {
+        write(&tmp).map_err(|e| io::Error::other(e.to_string()))?;
+        File::open(&tmp)?.sync_all()?;
+        crash_point(&format!("before-rename:{}", file_label(path)));
+        std::fs::rename(&tmp, path)?;
+        sync_parent(path);
+        Ok(())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// Makes a rename durable (best effort: not every filesystem syncs folders).
+fn sync_parent(path: &Path) {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    if let Ok(d) = File::open(dir) {
+        let _ = d.sync_all();
+    }
+}
+
+/// `folder/name` of a path: how crash points name the file being replaced
+/// (`before-rename:checkpoint.tmp/state.json`).
+fn file_label(path: &Path) -> String {
+    let name = |p: Option<&std::ffi::OsStr>| p.map(|n| n.to_string_lossy().into_owned());
+    let file = name(path.file_name()).unwrap_or_default();
+    match name(path.parent().and_then(Path::file_name)) {
+        Some(dir) => format!("{dir}/{file}"),
+        None => file,
+    }
+}
+
+/// Checks, before any work, that a file can be created at `path`: it names a
+/// file, not a folder, and the nearest existing ancestor folder accepts a
+/// new file (tried with a probe removed at once). Creates nothing that stays.
+pub fn check_writable(path: &Path) -> Result<(), String> {
+    if path.file_name().is_none() || path.as_os_str().to_string_lossy().ends_with('/') {
+        return Err("names a folder, not a file".into());
+    }
+    if path.is_dir() {
+        return Err("is a folder".into());
+    }
+    let parent = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let mut dir = parent.as_path();
+    while !dir.exists() {
+        match dir.parent() {
+            Some(d) if !d.as_os_str().is_empty() => dir = d,
+            _ => {
+                dir = Path::new(".");
+                break;
+            }
+        }
+    }
+    if !dir.is_dir() {
+        return Err(format!(
+            "{} is not a folder, so the file cannot be created",
+            dir.display()
+        ));
+    }
+    let probe = if dir == parent.as_path() {
+        temp_path(path)
+    } else {
+        dir.join(format!(".nppp-write-check.{}.tmp", std::process::id()))
+    };
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => {
+            let _ = std::fs::remove_file(&probe);
+            Ok(())
+        }
+        Err(e) => Err(format!("cannot be written: {e}")),
+    }
+}
+
+/// `path` made absolute with every existing part resolved (symbolic links,
+/// `.` and `..`), the rest normalized as written: two spellings of one file,
+/// existing or about to be created (`out/../x.exr` before `out/` exists),
+/// give the same result.
+pub fn resolve(path: &Path) -> PathBuf {
+    use std::path::Component;
+    if let Ok(p) = path.canonicalize() {
+        return p;
+    }
+    let abs = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let mut out = PathBuf::new();
+    for c in abs.components() {
+        match c {
+            Component::Prefix(_) | Component::RootDir => out.push(c.as_os_str()),
+            Component::CurDir => {}
+            // `out` is canonical while it exists, so this is its real parent.
+            Component::ParentDir => {
+                out.pop();
+            }
+            Component::Normal(n) => {
+                out.push(n);
+                if let Ok(real) = out.canonicalize() {
+                    out = real;
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Whether `a` and `b` name the same file: the same resolved path, or, when
+/// both exist, the same device and inode (a hard link).
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    if resolve(a) == resolve(b) {
+        return true;
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        if let (Ok(x), Ok(y)) = (std::fs::metadata(a), std::fs::metadata(b)) {
+            return x.dev() == y.dev() && x.ino() == y.ino();
+        }
+    }
+    false
+}
+
+/// Whether `path` is `dir` or lies inside it (after resolving both).
+pub fn is_inside(path: &Path, dir: &Path) -> bool {
+    resolve(path).starts_with(resolve(dir))
+}
+
+/// Refuses an output that names one of the command's inputs. `inputs` are
+/// (what the input is, e.g. "--data (the training data)", its path).
+pub fn ensure_not_input(
+    out_flag: &str,
+    out: &Path,
+    inputs: &[(&str, &Path)],
+) -> Result<(), String> {
+    for (what, input) in inputs {
+        if same_file(out, input) {
+            return Err(format!(
+                "{out_flag} {} is {what}: writing it would destroy an input. Choose another {out_flag}",
+                out.display()
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Aborts the process here if `NPPP_CRASH_AT` names this point: the tests'
+/// stand-in for a kill (no destructor runs, nothing is cleaned up), at an
+/// exact step of a write. Without the variable this is one lookup.
+pub fn crash_point(name: &str) {
+    if let Some(v) = std::env::var_os(CRASH_ENV)
+        && v == name
+    {
+        eprintln!("{CRASH_ENV}={name}: aborting here (crash test)");
+        std::process::abort();
+    }
+}
+
+/// Bytes of memory the system can still give this process (Linux'
+/// `MemAvailable`; `None` where it cannot be read).
+pub fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kib.checked_mul(1024)
+}
+
+/// A byte count for people: `512 B`, `1.50 KiB`, `16.04 MiB`, `8.00 GiB`.
+pub fn format_bytes(b: u64) -> String {
+    const KIB: f64 = 1024.0;
+    let x = b as f64;
+    if x >= KIB * KIB * KIB {
+        format!("{:.2} GiB", x / (KIB * KIB * KIB))
+    } else if x >= KIB * KIB {
+        format!("{:.2} MiB", x / (KIB * KIB))
+    } else if x >= KIB {
+        format!("{:.2} KiB", x / KIB)
+    } else {
+        format!("{b} B")
+    }
+}
+
+/// A rate for people: `12.3 steps/s`, `4.56 k rays/s`, `0.229 M samples/s`
+/// (three significant digits; M from 100,000 on, as the summaries print).
+pub fn format_rate(per_second: f64, unit: &str) -> String {
+    let x = if per_second.is_finite() {
+        per_second.max(0.0)
+    } else {
+        0.0
+    };
+    if x >= 1e5 {
+        format!("{:.3} M {unit}/s", x / 1e6)
+    } else if x >= 1e3 {
+        format!("{:.2} k {unit}/s", x / 1e3)
+    } else if x >= 10.0 {
+        format!("{x:.1} {unit}/s")
+    } else {
+        format!("{x:.2} {unit}/s")
+    }
+}
+
+/// An indicatif style from `template`, where `{rate}` prints the bar's
+/// rate with [`format_rate`] in `unit`s.
+pub fn progress_style(template: &str, unit: &'static str) -> indicatif::ProgressStyle {
+    indicatif::ProgressStyle::with_template(template)
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .with_key(
+            "rate",
+            move |s: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+                let _ = w.write_str(&format_rate(s.per_sec(), unit));
+            },
+        )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scratch(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("nppp-files-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn atomic_write_replaces_and_leaves_no_temp() {
+        let d = scratch("atomic");
+        let p = d.join("a.txt");
+        std::fs::write(&p, b"old").unwrap();
+        write_atomic(&p, b"new").unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), b"new");
+        assert_eq!(std::fs::read_dir(&d).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn dropped_writer_keeps_the_old_file() {
+        let d = scratch("dropped");
+        let p = d.join("a.txt");
+        std::fs::write(&p, b"old").unwrap();
+        {
+            let mut f = AtomicFile::create(&p).unwrap();
+            f.write_all(b"half").unwrap();
+        }
+        assert_eq!(std::fs::read(&p).unwrap(), b"old");
+        assert_eq!(std::fs::read_dir(&d).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn failed_path_writer_keeps_the_old_file() {
+        let d = scratch("via-path");
+        let p = d.join("a.exr");
+        std::fs::write(&p, b"old").unwrap();
+        let r = write_atomic_via_path(&p, |tmp| {
+            std::fs::write(tmp, b"half").map_err(|e| e.to_string())?;
+            Err::<(), _>("encoder failed".to_string())
+        });
+        assert!(r.is_err());
+        assert_eq!(std::fs::read(&p).unwrap(), b"old");
+        assert_eq!(std::fs::read_dir(&d).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn same_file_sees_through_spellings_and_links() {
+        let d = scratch("same");
+        let a = d.join("data.nppd");
+        std::fs::write(&a, b"x").unwrap();
+        std::fs::create_dir_all(d.join("sub")).unwrap();
+        assert!(same_file(&a, &d.join("sub/../data.nppd")));
+        assert!(same_file(&a, &d.join("./data.nppd")));
+        let link = d.join("hard.nppd");
+        std::fs::hard_link(&a, &link).unwrap();
+        assert!(same_file(&a, &link));
+        #[cfg(unix)]
+        {
+            let sym = d.join("sym.nppd");
+            std::os::unix::fs::symlink(&a, &sym).unwrap();
+            assert!(same_file(&sym, &a));
+        }
+        assert!(!same_file(&a, &d.join("other.nppd")));
+        // A file about to be created, spelled two ways, through a folder
+        // that does not exist yet.
+        assert!(same_file(&d.join("new/x.exr"), &d.join("sub/../new/x.exr")));
+        assert!(same_file(
+            &d.join("data.nppd"),
+            &d.join("missing/../data.nppd")
+        ));
+        assert!(same_file(&d.join("a/b/../../data.nppd"), &a));
+        let e =
+            ensure_not_input("--out", &d.join("sub/../data.nppd"), &[("--data", &a)]).unwrap_err();
+        assert!(e.contains("--out") && e.contains("--data"), "{e}");
+    }
+
+    #[test]
+    fn inside() {
+        let d = scratch("inside");
+        std::fs::create_dir_all(d.join("m/checkpoint")).unwrap();
+        assert!(is_inside(&d.join("m/checkpoint/x.nppp"), &d.join("m")));
+        assert!(is_inside(
+            &d.join("m/../m/checkpoint"),
+            &d.join("m/checkpoint")
+        ));
+        assert!(!is_inside(&d.join("mm/x"), &d.join("m")));
+    }
+
+    #[test]
+    fn rates_are_formatted() {
+        assert_eq!(format_rate(229_100.5871, "samples"), "0.229 M samples/s");
+        assert_eq!(format_rate(4560.0, "rays"), "4.56 k rays/s");
+        assert_eq!(format_rate(12.34, "steps"), "12.3 steps/s");
+        assert_eq!(format_rate(0.5, "steps"), "0.50 steps/s");
+        assert_eq!(format_rate(f64::NAN, "steps"), "0.00 steps/s");
+    }
+
+    #[test]
+    fn bytes_are_formatted() {
+        assert_eq!(format_bytes(512), "512 B");
+        assert_eq!(format_bytes(1536), "1.50 KiB");
+        assert_eq!(format_bytes(207 << 20), "207.00 MiB");
+        assert_eq!(format_bytes(8 << 30), "8.00 GiB");
+    }
+
+    #[test]
+    fn memory_is_known_on_linux() {
+        if cfg!(target_os = "linux") {
+            assert!(available_memory().unwrap() > 1 << 20);
+        }
+    }
+}

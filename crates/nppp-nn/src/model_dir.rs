@@ -1,0 +1,435 @@
+//! The model directory `nppp train` writes and `nppp bake` reads, and the
+//! rules that keep it from ever being lost.
+//!
+//! ```text
+//! out/
+//!   checkpoint/            the model: complete or absent, never half-written
+//!     model.bpk optim.bpk  weights and Adam state (Burn)
+//!     train_config.json    TrainConfig (Burn Config), the model config inside
+//!     model_config.json    ModelConfig (the same as train_config.json's "model")
+//!     meta.json            ModelMeta: the object, the exit transform, the data path
+//!     log.csv              the training log up to this checkpoint
+//!     state.json           progress, and the size and CRC-32 of every file above
+//!   train_config.json model_config.json meta.json log.csv
+//!                          copies of the checkpoint's, for people and tools
+//! ```
+//!
+//! A checkpoint is written whole into `checkpoint.tmp/`, `state.json` last,
+//! and swapped in by two renames (`checkpoint` -> `checkpoint.old`,
+//! `checkpoint.tmp` -> `checkpoint`); a kill at any instant leaves
+//! `checkpoint/` or, between the renames, `checkpoint.old/` complete. The
+//! copies beside it are replaced atomically after the swap; readers (resume,
+//! bake) use only the checkpoint's own files and check every checksum, so a
+//! stale or damaged copy, or a flipped byte in the weights, is never used.
+//! A fresh run into a directory that holds a model (`--overwrite`) leaves the
+//! old checkpoint, log and copies in place until it has saved its first
+//! checkpoint.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use burn::config::Config;
+use burn::module::Module;
+use burn::optim::ModuleOptimizer;
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::eval::HeldoutMetrics;
+use crate::features::INPUT_FEATURES;
+use crate::io::ModelMeta;
+use crate::model::{ModelConfig, NpppModel};
+use crate::train::TrainConfig;
+
+/// File names inside a model directory.
+pub mod files {
+    pub const MODEL_CONFIG: &str = "model_config.json";
+    pub const TRAIN_CONFIG: &str = "train_config.json";
+    pub const META: &str = "meta.json";
+    pub const LOG: &str = "log.csv";
+    pub const CHECKPOINT: &str = "checkpoint";
+    pub const CHECKPOINT_TMP: &str = "checkpoint.tmp";
+    pub const CHECKPOINT_OLD: &str = "checkpoint.old";
+    pub const WEIGHTS: &str = "model.bpk";
+    pub const OPTIMIZER: &str = "optim.bpk";
+    pub const STATE: &str = "state.json";
+    /// Every name `nppp train` may create in a model directory: a fresh run
+    /// refuses a non-empty `--out` holding anything else (a user's folder).
+    pub const ALL: &[&str] = &[
+        MODEL_CONFIG,
+        TRAIN_CONFIG,
+        META,
+        LOG,
+        CHECKPOINT,
+        CHECKPOINT_TMP,
+        CHECKPOINT_OLD,
+    ];
+    /// The files a checkpoint holds besides `state.json`, which lists them.
+    pub const IN_CHECKPOINT: &[&str] = &[WEIGHTS, OPTIMIZER, TRAIN_CONFIG, MODEL_CONFIG, META, LOG];
+}
+
+/// Version of `state.json`. 2: the checkpoint holds its own configs, meta
+/// and log, and the size and CRC-32 of each file (version 1 had none).
+pub const STATE_VERSION: u32 = 2;
+
+/// What identifies the data a checkpoint was trained on.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DataFingerprint {
+    pub rays: usize,
+    pub hits: usize,
+    pub k: usize,
+    pub mesh_hash: u64,
+    pub material_hash: u64,
+}
+
+/// The size and checksum of one file of a checkpoint.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FileSum {
+    pub name: String,
+    pub bytes: u64,
+    pub crc32: u32,
+}
+
+impl FileSum {
+    fn of(dir: &Path, name: &str) -> Result<Self> {
+        let p = dir.join(name);
+        let data = fs::read(&p).with_context(|| format!("reading back {}", p.display()))?;
+        Ok(Self {
+            name: name.to_string(),
+            bytes: data.len() as u64,
+            crc32: crc32fast::hash(&data),
+        })
+    }
+}
+
+/// Progress saved with every checkpoint (`checkpoint/state.json`), written
+/// last: it is the checkpoint's table of contents.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrainState {
+    pub version: u32,
+    /// Optimizer steps done.
+    pub step: u64,
+    pub steps_per_epoch: usize,
+    /// Training time over all invocations.
+    pub elapsed_s: f64,
+    /// Running sums of the training losses (total, chamfer, energy, bce)
+    /// since the last log row, and their count, so a resumed run logs the
+    /// same averages as an uninterrupted one.
+    pub epoch_sums: [f64; 4],
+    pub epoch_count: u64,
+    pub data: DataFingerprint,
+    pub last_metrics: Option<HeldoutMetrics>,
+    /// The run's length after fitting it into a `--minutes` budget (None:
+    /// the configured length): the learning-rate schedule follows it, so a
+    /// time-limited run still ends with its decay phase.
+    #[serde(default)]
+    pub schedule_steps: Option<u64>,
+    /// Size and CRC-32 of every other file of the checkpoint.
+    #[serde(default)]
+    pub files: Vec<FileSum>,
+}
+
+/// A checkpoint read back and checked: every file present, every checksum
+/// right, the configs and meta parsed and valid for this build.
+pub struct Checkpoint {
+    pub dir: PathBuf,
+    pub state: TrainState,
+    pub train_config: TrainConfig,
+    pub meta: ModelMeta,
+    /// The training log up to this checkpoint (header first).
+    pub log: String,
+}
+
+/// The checkpoint folder of a model directory: `checkpoint/`, or
+/// `checkpoint.old/` when a kill fell between the two renames of a swap.
+pub fn checkpoint_dir(out: &Path) -> Option<PathBuf> {
+    [files::CHECKPOINT, files::CHECKPOINT_OLD]
+        .iter()
+        .map(|n| out.join(n))
+        .find(|d| d.join(files::STATE).is_file())
+}
+
+/// Reads and checks the checkpoint of `model_dir`; `Ok(None)` when it has
+/// none. `rebuild` is the command that makes the model again, named in
+/// messages about files this build cannot use.
+pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
+    let Some(dir) = checkpoint_dir(model_dir) else {
+        return Ok(None);
+    };
+    let rebuild = format!(
+        "retrain it with `nppp train --data DATA.nppd --out {} --overwrite`",
+        model_dir.display()
+    );
+    let sp = dir.join(files::STATE);
+    let text = fs::read_to_string(&sp).with_context(|| format!("reading {}", sp.display()))?;
+    #[derive(Deserialize)]
+    struct Version {
+        version: u32,
+    }
+    let v: Version = serde_json::from_str(&text)
+        .with_context(|| format!("{} is corrupt (not a checkpoint state)", sp.display()))?;
+    if v.version != STATE_VERSION {
+        bail!(
+            "{}: checkpoint format version {} (this build reads version {STATE_VERSION}: \
+             checkpoints now carry checksums and their own configs); {rebuild}",
+            sp.display(),
+            v.version
+        );
+    }
+    let state: TrainState =
+        serde_json::from_str(&text).with_context(|| format!("{} is corrupt", sp.display()))?;
+    for name in files::IN_CHECKPOINT {
+        let Some(want) = state.files.iter().find(|f| f.name == *name) else {
+            bail!(
+                "{} does not list {name}: the checkpoint is incomplete; {rebuild}",
+                sp.display()
+            );
+        };
+        let p = dir.join(name);
+        let data = fs::read(&p).with_context(|| {
+            format!(
+                "{} is missing or unreadable: the checkpoint is damaged",
+                p.display()
+            )
+        })?;
+        if data.len() as u64 != want.bytes || crc32fast::hash(&data) != want.crc32 {
+            bail!(
+                "{} is corrupt: {} bytes with CRC-32 {:08x}, the checkpoint recorded {} bytes with \
+                 {:08x}. The file was damaged after it was written; restore it from a backup or {rebuild}",
+                p.display(),
+                data.len(),
+                crc32fast::hash(&data),
+                want.bytes,
+                want.crc32
+            );
+        }
+    }
+    let tc = dir.join(files::TRAIN_CONFIG);
+    let train_config = TrainConfig::load(&tc)
+        .map_err(|e| anyhow::anyhow!("cannot read {}: {e:?}", tc.display()))?;
+    train_config
+        .model
+        .validate()
+        .with_context(|| format!("{}", tc.display()))?;
+    let mp = dir.join(files::META);
+    let meta: ModelMeta = serde_json::from_str(
+        &fs::read_to_string(&mp).with_context(|| format!("reading {}", mp.display()))?,
+    )
+    .with_context(|| format!("{} is corrupt", mp.display()))?;
+    if meta.format != ModelMeta::FORMAT || meta.version != 1 {
+        bail!(
+            "{}: not an nppp model (format {:?} version {})",
+            mp.display(),
+            meta.format,
+            meta.version
+        );
+    }
+    if meta.input_features != INPUT_FEATURES {
+        bail!(
+            "{}: the model was trained on {} input features, this build computes {}; {rebuild}",
+            mp.display(),
+            meta.input_features,
+            INPUT_FEATURES
+        );
+    }
+    let lp = dir.join(files::LOG);
+    let log = fs::read_to_string(&lp).with_context(|| format!("reading {}", lp.display()))?;
+    Ok(Some(Checkpoint {
+        dir,
+        state,
+        train_config,
+        meta,
+        log,
+    }))
+}
+
+/// Runs `f`, turning a panic inside Burn (it panics on some malformed files)
+/// into an error.
+fn no_panic<T>(what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(p) => {
+            let msg = p
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_default();
+            bail!("{what}: the file is corrupt or from another model ({msg})")
+        }
+    }
+}
+
+/// Loads the weights of a checked checkpoint onto `device`.
+pub fn load_weights(ckpt: &Checkpoint, device: &Device) -> Result<NpppModel> {
+    let path = ckpt.dir.join(files::WEIGHTS);
+    let fresh = NpppModel::init(&ckpt.train_config.model, 0, device)?;
+    no_panic(&format!("loading {}", path.display()), || {
+        fresh
+            .try_load_file(&path)
+            .map_err(|e| anyhow::anyhow!("loading {}: {e:?}", path.display()))
+    })
+}
+
+/// Loads the Adam state of a checked checkpoint into `optim`.
+pub fn load_optimizer(ckpt: &Checkpoint, optim: ModuleOptimizer) -> Result<ModuleOptimizer> {
+    let path = ckpt.dir.join(files::OPTIMIZER);
+    no_panic(&format!("loading {}", path.display()), || {
+        optim
+            .load(&path)
+            .map_err(|e| anyhow::anyhow!("loading {}: {e:?}", path.display()))
+    })
+}
+
+/// Whether a fresh run may write into `out`: it does not exist, is empty,
+/// or holds nothing but what `nppp train` writes (so a user's own folder is
+/// never filled with, or stripped of, files).
+pub fn check_fresh_out(out: &Path) -> Result<()> {
+    if !out.exists() {
+        return Ok(());
+    }
+    if !out.is_dir() {
+        bail!(
+            "--out {} is a file; name a folder for the model",
+            out.display()
+        );
+    }
+    let entries = fs::read_dir(out).with_context(|| format!("reading {}", out.display()))?;
+    for e in entries {
+        let name = e?.file_name().to_string_lossy().into_owned();
+        let ours = files::ALL.contains(&name.as_str())
+            || (name.starts_with('.') && name.ends_with(".tmp"));
+        if !ours {
+            bail!(
+                "--out {} holds {name:?}, which `nppp train` did not write: it is not a model \
+                 directory. Choose a new or empty folder",
+                out.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// What a checkpoint holds besides the state.
+pub struct CheckpointContent<'a> {
+    pub train_config: &'a TrainConfig,
+    pub meta: &'a ModelMeta,
+    pub model: &'a NpppModel,
+    pub optim: &'a ModuleOptimizer,
+    /// The whole training log so far, header first.
+    pub log: &'a str,
+}
+
+fn sync_file(p: &Path) -> Result<()> {
+    fs::File::open(p)
+        .and_then(|f| f.sync_all())
+        .with_context(|| format!("syncing {}", p.display()))
+}
+
+/// Writes a complete checkpoint and swaps it in (see the module doc), then
+/// refreshes the copies beside it. `state.files` is filled in here.
+pub fn save_checkpoint(out: &Path, c: &CheckpointContent, state: &TrainState) -> Result<()> {
+    let tmp = out.join(files::CHECKPOINT_TMP);
+    let cur = out.join(files::CHECKPOINT);
+    let old = out.join(files::CHECKPOINT_OLD);
+    if tmp.exists() {
+        fs::remove_dir_all(&tmp).with_context(|| format!("removing {}", tmp.display()))?;
+    }
+    fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    let w = tmp.join(files::WEIGHTS);
+    c.model
+        .clone()
+        .save_file(&w)
+        .map_err(|e| anyhow::anyhow!("saving weights to {}: {e:?}", w.display()))?;
+    sync_file(&w)?;
+    nppp_files::crash_point("checkpoint:weights-written");
+    let o = tmp.join(files::OPTIMIZER);
+    c.optim
+        .save(&o)
+        .map_err(|e| anyhow::anyhow!("saving optimizer state to {}: {e:?}", o.display()))?;
+    sync_file(&o)?;
+    let texts = texts(c)?;
+    for (name, text) in &texts {
+        let p = tmp.join(name);
+        nppp_files::write_atomic(&p, text.as_bytes())
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    let mut state = state.clone();
+    state.version = STATE_VERSION;
+    state.files = files::IN_CHECKPOINT
+        .iter()
+        .map(|n| FileSum::of(&tmp, n))
+        .collect::<Result<_>>()?;
+    let sp = tmp.join(files::STATE);
+    nppp_files::write_atomic(&sp, serde_json::to_string_pretty(&state)?.as_bytes())
+        .with_context(|| format!("writing {}", sp.display()))?;
+    nppp_files::crash_point("checkpoint:complete");
+    // Swap. `checkpoint` is the last complete one if it exists; otherwise
+    // (a kill between renames) `checkpoint.old` is, and stays until the new
+    // one is in place.
+    if cur.join(files::STATE).is_file() {
+        if old.exists() {
+            fs::remove_dir_all(&old).with_context(|| format!("removing {}", old.display()))?;
+        }
+        fs::rename(&cur, &old).with_context(|| format!("moving {}", cur.display()))?;
+        nppp_files::crash_point("checkpoint:between-renames");
+    } else if cur.exists() {
+        // Not a checkpoint (no state): debris of a crash, never read.
+        fs::remove_dir_all(&cur).with_context(|| format!("removing {}", cur.display()))?;
+    }
+    fs::rename(&tmp, &cur).with_context(|| format!("moving {} into place", tmp.display()))?;
+    nppp_files::crash_point("checkpoint:swapped");
+    if old.exists() {
+        fs::remove_dir_all(&old).with_context(|| format!("removing {}", old.display()))?;
+    }
+    for (name, text) in &texts {
+        let p = out.join(name);
+        nppp_files::write_atomic(&p, text.as_bytes())
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    Ok(())
+}
+
+/// The text files of a checkpoint: name and content.
+fn texts(c: &CheckpointContent) -> Result<Vec<(&'static str, String)>> {
+    Ok(vec![
+        (files::TRAIN_CONFIG, c.train_config.to_string()),
+        (files::MODEL_CONFIG, c.train_config.model.to_string()),
+        (files::META, serde_json::to_string_pretty(c.meta)?),
+        (files::LOG, c.log.to_string()),
+    ])
+}
+
+/// A trained model loaded back from its directory, for baking and evaluation.
+pub struct LoadedModel {
+    pub dir: PathBuf,
+    pub model_config: ModelConfig,
+    pub train_config: TrainConfig,
+    pub meta: ModelMeta,
+    pub model: NpppModel,
+    pub state: TrainState,
+}
+
+/// Loads the checked checkpoint of a model directory (no autodiff) onto `device`.
+pub fn load_model_dir(dir: &Path, device: &Device) -> Result<LoadedModel> {
+    if !dir.is_dir() {
+        if dir.exists() {
+            bail!(
+                "model directory {} is a file; name the folder `nppp train --out` wrote",
+                dir.display()
+            );
+        }
+        bail!("model directory {} does not exist", dir.display());
+    }
+    let ckpt = open_checkpoint(dir)?
+        .with_context(|| format!("{} holds no checkpoint (train first)", dir.display()))?;
+    let device = device.clone().without_autodiff();
+    let model = load_weights(&ckpt, &device)?;
+    Ok(LoadedModel {
+        dir: dir.to_path_buf(),
+        model_config: ckpt.train_config.model.clone(),
+        train_config: ckpt.train_config,
+        meta: ckpt.meta,
+        model,
+        state: ckpt.state,
+    })
+}
