@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Render an nppp scene JSON (shared/SCENE_FORMAT.md) with Mitsuba 3 as an independent reference.
+"""Render an nppp scene JSON (docs/scene-format.md) with Mitsuba 3 as an independent reference.
 
     render_mitsuba.py SCENE.json --out FILE.exr [--spp N] [--variant scalar_rgb|llvm_ad_rgb]
                       [--max-bounces M] [--seed S] [--threads T] [--time]
@@ -180,7 +180,7 @@ def render(scene, variant="scalar_rgb", spp=None, max_bounces=None, seed=None, t
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scene", help="scene JSON (shared/SCENE_FORMAT.md)")
+    ap.add_argument("scene", help="scene JSON (docs/scene-format.md)")
     ap.add_argument("--out", required=True,
                     help="output OpenEXR (linear RGB float32); a path not ending in .exr is a "
                          "folder and gets FOLDER/<scene name>.mitsuba.exr")

@@ -1,4 +1,4 @@
-"""Reader for nppp's scene JSON (see shared/SCENE_FORMAT.md), without Mitsuba.
+"""Reader for nppp's scene JSON (see docs/scene-format.md), without Mitsuba.
 
 Validates a scene file against the contract and turns every instance into a
 plain triangle mesh in world space (numpy arrays), so that a reference
@@ -33,7 +33,7 @@ MESH_SOURCES = ("quad", "box", "icosphere", "obj")
 
 
 class SceneError(Exception):
-    """A scene that does not follow SCENE_FORMAT.md. The message names the key path or file."""
+    """A scene that does not follow docs/scene-format.md. The message names the key path or file."""
 
 
 # --------------------------------------------------------------------------

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
-    /// Scene file (SCENE_FORMAT.md).
+    /// Scene file (docs/scene-format.md).
     pub scene: PathBuf,
     /// Samples per pixel (overrides the scene's render.spp).
     #[arg(long)]

@@ -1,5 +1,5 @@
 //! Bad input through the real `nppp` binary: the corpus in `tests/bad_input/`
-//! (every error class of SCENE_FORMAT.md, broken OBJ, estimator and
+//! (every error class of docs/scene-format.md, broken OBJ, estimator and
 //! training-data files, absurd flags). For each case the tool must exit with
 //! status 1 (101 would be a panic), name the file and the key path or reason
 //! on stderr, and leave the output folder exactly as it was: no new file, and
@@ -109,7 +109,7 @@ fn render_fails(case: &str, scene: &Path, extra: &[&str], needles: &[&str]) {
 }
 
 // ---------------------------------------------------------------------------
-// Scenes: SCENE_FORMAT.md's error list, case by case
+// Scenes: docs/scene-format.md's error list, case by case
 // ---------------------------------------------------------------------------
 
 /// (scene file in tests/bad_input, what stderr must say besides the file's
@@ -760,15 +760,45 @@ fn absurd_flags_are_rejected_before_rendering() {
     let dir = scratch("threads-0");
     let out = dir.join("out.exr");
     let o = nppp([
-        "--threads".as_ref(),
-        "0".as_ref(),
         "render".as_ref(),
         scene.as_os_str(),
+        "--threads".as_ref(),
+        "0".as_ref(),
         "--out".as_ref(),
         out.as_os_str(),
     ]);
     assert_clean_error("--threads 0", &o, &["--threads must be at least 1"]);
     assert!(!out.exists());
+    // --threads only where it means something: `info` and `mesh` have no
+    // thread pool to size, so the flag is a usage error there (status 2).
+    let est = file("est_valid.nppp");
+    for args in [
+        vec![
+            "info".as_ref(),
+            "--threads".as_ref(),
+            "2".as_ref(),
+            est.as_os_str(),
+        ],
+        vec![
+            "mesh".as_ref(),
+            "--scene".as_ref(),
+            scene.as_os_str(),
+            "--mesh".as_ref(),
+            "m".as_ref(),
+            "--out".as_ref(),
+            "m.obj".as_ref(),
+            "--threads".as_ref(),
+            "2".as_ref(),
+        ],
+    ] {
+        let o = nppp(&args);
+        assert_eq!(o.status.code(), Some(2), "{:?}: {}", args, text(&o));
+        assert!(
+            text(&o).contains("unexpected argument '--threads'"),
+            "{}",
+            text(&o)
+        );
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -154,6 +154,14 @@ fn small_train<'a>(data: &'a Path, out: &'a Path, epochs: &'a str) -> Vec<&'a Os
     v
 }
 
+/// Sets `flag` to `value` in `args` (clap refuses a repeated flag).
+fn set_flag<'a>(args: &mut Vec<&'a OsStr>, flag: &'a str, value: &'a str) {
+    match args.iter().position(|a| *a == OsStr::new(flag)) {
+        Some(i) => args[i + 1] = OsStr::new(value),
+        None => args.extend([OsStr::new(flag), OsStr::new(value)]),
+    }
+}
+
 /// Data and a model trained for one epoch (one checkpoint) in `dir`.
 fn trained(dir: &Path) -> (PathBuf, PathBuf) {
     let data = dir.join("data.nppd");
@@ -163,7 +171,7 @@ fn trained(dir: &Path) -> (PathBuf, PathBuf) {
     (data, model)
 }
 
-fn bake_args<'a>(model: &'a Path, out: &'a Path, extra: &[&'a str]) -> Vec<&'a OsStr> {
+fn bake_args<'a>(model: &'a Path, out: &'a Path, extra: &'a [&'a str]) -> Vec<&'a OsStr> {
     let mut v: Vec<&OsStr> = vec![
         "bake".as_ref(),
         "--model".as_ref(),
@@ -289,7 +297,7 @@ fn gen_never_writes_over_its_scene_or_mesh() {
     std::fs::write(&obj, obj_text).unwrap();
     let scene = dir.join("scene.json");
     let scene_text = r#"{"camera": {"position": [0, 0, 5], "look_at": [0, 0, 0], "up": [0, 1, 0],
-        "fov_y": 40, "width": 8, "height": 8},
+        "fov_y_deg": 40, "width": 8, "height": 8},
       "materials": {"m": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
       "meshes": {"ball": {"obj": "ball.obj"}},
       "instances": [{"mesh": "ball", "material": "m"}]}"#;
@@ -461,7 +469,7 @@ fn an_interrupted_overwrite_keeps_the_old_model() {
     ] {
         let mut args = small_train(&data, &model, "3");
         args.push("--overwrite".as_ref());
-        args.extend(["--seed", "9"].iter().map(OsStr::new));
+        set_flag(&mut args, "--seed", "9");
         let o = nppp_env(&args, &[("NPPP_CRASH_AT", point)]);
         assert!(!o.status.success(), "{point}: not killed");
         let mut after = snapshot(&model);
@@ -476,7 +484,7 @@ fn an_interrupted_overwrite_keeps_the_old_model() {
     // A completed overwrite replaces it.
     let mut args = small_train(&data, &model, "1");
     args.push("--overwrite".as_ref());
-    args.extend(["--seed", "9"].iter().map(OsStr::new));
+    set_flag(&mut args, "--seed", "9");
     assert_ok("--overwrite", &nppp(&args));
     assert_ne!(snapshot(&model), before);
     assert!(!model.join("checkpoint.tmp").exists());
@@ -570,9 +578,7 @@ fn absurd_batches_are_refused_with_a_message() {
     ] {
         let out = dir.join("m");
         let mut args = small_train(&data, &out, "1");
-        // clap refuses a repeated flag: replace the value in place.
-        let i = args.iter().position(|a| *a == OsStr::new(flag)).unwrap();
-        args[i + 1] = OsStr::new(value);
+        set_flag(&mut args, flag, value);
         let o = nppp(&args);
         assert_error(&format!("{flag} {value}"), &o, &[needle, "memory"]);
         assert!(!out.exists(), "{flag} {value}: wrote {}", out.display());
@@ -662,6 +668,15 @@ fn an_interrupted_run_saves_a_checkpoint_and_says_how_to_resume() {
                 break;
             }
         }
+        // A second run into the same folder is refused while this one writes it.
+        let mut second = small_train(&data, &model, "100000");
+        second.push("--resume".as_ref());
+        let o = nppp(&second);
+        assert_error(
+            "a second train into a busy folder",
+            &o,
+            &["another `nppp train`"],
+        );
         let killed = Command::new("kill")
             .args([format!("-{signal}"), child.id().to_string()])
             .status()
@@ -687,11 +702,8 @@ fn an_interrupted_run_saves_a_checkpoint_and_says_how_to_resume() {
         // It resumes from there.
         let stop = (step + 5).to_string();
         let mut args = small_train(&data, &model, "100000");
-        args.extend(
-            ["--resume", "--stop-after", stop.as_str()]
-                .iter()
-                .map(OsStr::new),
-        );
+        let extra = ["--resume", "--stop-after", stop.as_str()];
+        args.extend(extra.iter().map(OsStr::new));
         assert_ok("--resume after an interrupt", &nppp(&args));
         assert_eq!(state_step(&model), step + 5);
     }

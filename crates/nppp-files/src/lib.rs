@@ -56,7 +56,8 @@ pub struct AtomicFile {
 }
 
 impl AtomicFile {
-    /// Starts writing `path` (its folder is created if missing).
+    /// Starts writing `path`; its folder must exist ([`create_parent`]
+    /// makes it, for callers that want that).
     pub fn create(path: &Path) -> io::Result<Self> {
         if path.file_name().is_none() {
             return Err(io::Error::new(
@@ -64,7 +65,6 @@ impl AtomicFile {
                 format!("{} names a folder, not a file", path.display()),
             ));
         }
-        create_parent(path)?;
         let tmp = temp_path(path);
         let file = File::create(&tmp)?;
         Ok(Self {
@@ -141,7 +141,8 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
 
 /// Replaces `path` atomically with what `write` puts at the temporary path
 /// it is given (for writers that insist on opening a path themselves, such
-/// as the EXR encoder). The temporary file is removed on any error.
+/// as the EXR encoder); its folder must exist. The temporary file is
+/// removed on any error.
 pub fn write_atomic_via_path<E: std::fmt::Display>(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), E>,
@@ -152,7 +153,6 @@ pub fn write_atomic_via_path<E: std::fmt::Display>(
             format!("{} names a folder, not a file", path.display()),
         ));
     }
-    create_parent(path)?;
     let tmp = temp_path(path);
     let result = (|| {
         write(&tmp).map_err(|e| io::Error::other(e.to_string()))?;

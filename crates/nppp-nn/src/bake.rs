@@ -514,7 +514,8 @@ pub fn bake(opts: &BakeOptions) -> Result<BakeReport> {
             (Some(a), Some(b))
         }
     };
-    nppp_files::write_atomic(&opts.out, &bytes)
+    nppp_files::create_parent(&opts.out)
+        .and_then(|_| nppp_files::write_atomic(&opts.out, &bytes))
         .with_context(|| format!("writing {}", opts.out.display()))?;
     Ok(BakeReport {
         out: Some(opts.out.clone()),

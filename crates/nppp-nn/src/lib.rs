@@ -1,5 +1,7 @@
 //! The neural estimator in Burn: encoder, decoder and mask network, their
-//! training (Chamfer + mask BCE, Adam, checkpoints) and baking to `.nppp`.
+//! training (Chamfer + energy distance + mask BCE, Adam), the model
+//! directory with its checksummed checkpoints (`model_dir`), and baking to
+//! `.nppp`.
 //!
 //! The renderer never links this crate's training stack: it reads the baked
 //! file through `nppp-estimator`. This crate is what `nppp train` and

@@ -53,6 +53,9 @@ pub mod files {
     pub const WEIGHTS: &str = "model.bpk";
     pub const OPTIMIZER: &str = "optim.bpk";
     pub const STATE: &str = "state.json";
+    /// Held (an OS file lock, released when the process ends, however it
+    /// ends) by the one `nppp train` writing the directory.
+    pub const LOCK: &str = ".nppp-train.lock";
     /// Every name `nppp train` may create in a model directory: a fresh run
     /// refuses a non-empty `--out` holding anything else (a user's folder).
     pub const ALL: &[&str] = &[
@@ -63,6 +66,7 @@ pub mod files {
         CHECKPOINT,
         CHECKPOINT_TMP,
         CHECKPOINT_OLD,
+        LOCK,
     ];
     /// The files a checkpoint holds besides `state.json`, which lists them.
     pub const IN_CHECKPOINT: &[&str] = &[WEIGHTS, OPTIMIZER, TRAIN_CONFIG, MODEL_CONFIG, META, LOG];
@@ -309,6 +313,31 @@ pub fn check_fresh_out(out: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Takes the model directory for this process (creating it if needed): two
+/// runs writing one directory would interleave their checkpoints. The lock
+/// is the OS's (`flock`), so a killed run never leaves a stale one.
+pub fn lock_model_dir(out: &Path) -> Result<fs::File> {
+    fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let p = out.join(files::LOCK);
+    let f = fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&p)
+        .with_context(|| format!("opening {}", p.display()))?;
+    match f.try_lock() {
+        Ok(()) => Ok(f),
+        Err(fs::TryLockError::WouldBlock) => bail!(
+            "{}: another `nppp train` is writing this model directory; wait for it, or train \
+             into another --out",
+            out.display()
+        ),
+        Err(fs::TryLockError::Error(e)) => {
+            Err(e).with_context(|| format!("locking {}", p.display()))
+        }
+    }
+}
+
 /// What a checkpoint holds besides the state.
 pub struct CheckpointContent<'a> {
     pub train_config: &'a TrainConfig,
@@ -381,7 +410,18 @@ pub fn save_checkpoint(out: &Path, c: &CheckpointContent, state: &TrainState) ->
     if old.exists() {
         fs::remove_dir_all(&old).with_context(|| format!("removing {}", old.display()))?;
     }
-    for (name, text) in &texts {
+    write_copies(out, &texts)
+}
+
+/// Replaces the copies beside the checkpoint with its own files' content
+/// (at every checkpoint, and when a run resumes: a kill between a swap and
+/// the copies may have left them stale).
+pub fn refresh_copies(out: &Path, c: &CheckpointContent) -> Result<()> {
+    write_copies(out, &texts(c)?)
+}
+
+fn write_copies(out: &Path, texts: &[(&'static str, String)]) -> Result<()> {
+    for (name, text) in texts {
         let p = out.join(name);
         nppp_files::write_atomic(&p, text.as_bytes())
             .with_context(|| format!("writing {}", p.display()))?;

@@ -31,7 +31,8 @@ use crate::loss::{
 use crate::model::{ModelConfig, NpppModel};
 use crate::model_dir::{
     Checkpoint, CheckpointContent, DataFingerprint, STATE_VERSION, TrainState, check_fresh_out,
-    checkpoint_dir, load_optimizer, load_weights, open_checkpoint, save_checkpoint,
+    checkpoint_dir, load_optimizer, load_weights, lock_model_dir, open_checkpoint, refresh_copies,
+    save_checkpoint,
 };
 
 pub use crate::model_dir::files;
@@ -920,24 +921,15 @@ fn train_on(
     // The exits per ray a step uses can only be as many as the file holds;
     // the saved config says what actually runs.
     if cfg.k > data.k {
-        if opts.k.is_some() && !opts.resume {
-            bail!(
-                "--k {}: {} holds only {} exits per ray; use --k {} or less, or generate the \
-                 data with `nppp gen --k {}`",
-                cfg.k,
-                opts.data.display(),
-                data.k,
-                data.k,
-                cfg.k
-            );
-        }
         if !opts.quiet {
             eprintln!(
-                "note: {} holds {} exits per ray, so each step uses k = {} (the default is {})",
+                "note: {} holds {} exits per ray, so each step uses k = {} (not {}); \
+                 train_config.json records {}",
                 opts.data.display(),
                 data.k,
                 data.k,
-                cfg.k
+                cfg.k,
+                data.k
             );
         }
         cfg.k = data.k;
@@ -966,6 +958,7 @@ fn train_on(
     let mut total_steps = total_steps;
     let mut stop_at = opts.stop_after.map_or(total_steps, |s| s.min(total_steps));
     let fp = fingerprint(&info, &data);
+    let _lock = lock_model_dir(out)?;
 
     // Start fresh or resume. A fresh run writes nothing into `out` until
     // its first checkpoint: a model already there (--overwrite) stays whole
@@ -1016,6 +1009,16 @@ fn train_on(
     // The step of the newest checkpoint of *this* run (resumed from, or
     // saved since): what a divergence message may point to.
     let mut last_saved = resumed_from;
+    if resumed_from.is_some() {
+        let content = CheckpointContent {
+            train_config: &cfg,
+            meta: &meta,
+            model: &model,
+            optim: &optim,
+            log: &log,
+        };
+        refresh_copies(out, &content)?;
+    }
 
     if let Some(s) = state.schedule_steps {
         total_steps = total_steps.min(s);

@@ -1,4 +1,4 @@
-//! The pinhole camera of SCENE_FORMAT.md.
+//! The pinhole camera of docs/scene-format.md.
 
 use glam::{Vec2, Vec3};
 use nppp_scene::Camera as CameraDesc;

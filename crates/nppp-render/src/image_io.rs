@@ -60,10 +60,12 @@ pub fn write_atomically(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), String>,
 ) -> Result<(), ImageError> {
-    nppp_files::write_atomic_via_path(path, write).map_err(|e| ImageError::Write {
-        path: path.into(),
-        msg: e.to_string(),
-    })
+    nppp_files::create_parent(path)
+        .and_then(|_| nppp_files::write_atomic_via_path(path, write))
+        .map_err(|e| ImageError::Write {
+            path: path.into(),
+            msg: e.to_string(),
+        })
 }
 
 pub fn write_exr(img: &Image, path: &Path) -> Result<(), ImageError> {
@@ -194,10 +196,12 @@ pub fn write_png_with(img: &Image, path: &Path, preview: &Preview) -> Result<(),
 
 /// Writes a small text file atomically (reports, CSV).
 pub fn write_text(path: &Path, text: &str) -> Result<(), ImageError> {
-    nppp_files::write_atomic(path, text.as_bytes()).map_err(|e| ImageError::Write {
-        path: path.into(),
-        msg: e.to_string(),
-    })
+    nppp_files::create_parent(path)
+        .and_then(|_| nppp_files::write_atomic(path, text.as_bytes()))
+        .map_err(|e| ImageError::Write {
+            path: path.into(),
+            msg: e.to_string(),
+        })
 }
 
 #[cfg(test)]

@@ -6,7 +6,7 @@
 //! roulette), then compact away the paths that ended. Each sample owns its
 //! random stream, so batching and thread count never change the image.
 //!
-//! Bounce convention (SCENE_FORMAT.md): `depth` counts scattering events so
+//! Bounce convention (docs/scene-format.md): `depth` counts scattering events so
 //! far; emission found after `depth` events contributes to the image when
 //! `depth <= max_bounces`, and NEE at a vertex contributes a path with
 //! `depth + 1` events.

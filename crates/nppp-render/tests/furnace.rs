@@ -125,7 +125,7 @@ fn glass_sphere_conserves_energy() {
 
 #[test]
 fn camera_inside_glass_sees_outside_brighter_by_eta_squared() {
-    // SCENE_FORMAT.md: a camera inside glass of ior 1.5 sees the outside 2.25 times as bright, before Fresnel.
+    // docs/scene-format.md: a camera inside glass of ior 1.5 sees the outside 2.25 times as bright, before Fresnel.
     // A glass sphere around the camera, looking straight out at normal incidence: T = 1 - ((1.5-1)/(1.5+1))^2 = 0.96.
     let json = furnace_scene(
         r#"{"type": "dielectric", "ior": 1.5}"#,

@@ -1,6 +1,6 @@
 //! The one error type of scene loading. Every variant carries the scene file
 //! and, where the problem sits inside it, the key path (`instances[3].material`),
-//! because SCENE_FORMAT.md promises errors that point at the offending key or
+//! because docs/scene-format.md promises errors that point at the offending key or
 //! file: a user with a 300-line scene must not have to guess.
 
 use std::path::PathBuf;

@@ -1,5 +1,5 @@
 //! Content hashes that bind a baked estimator to the exact mesh and material
-//! it was trained on (SCENE_FORMAT.md: an estimator "is only valid for the
+//! it was trained on (docs/scene-format.md: an estimator "is only valid for the
 //! mesh and material it was trained on"). Names are deliberately not hashed:
 //! renaming a mesh in a scene must not invalidate its estimator, while moving
 //! one vertex or changing one roughness value must.

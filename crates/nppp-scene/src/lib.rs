@@ -1,4 +1,4 @@
-//! Scene files (the contract of SCENE_FORMAT.md): JSON parsing, validation
+//! Scene files (the contract of docs/scene-format.md): JSON parsing, validation
 //! with errors that name the offending key path or file, the mesh sources
 //! (OBJ, quad, box, icosphere, procedural objects) and the resolved,
 //! render-ready [`Scene`].

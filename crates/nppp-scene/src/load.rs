@@ -1,7 +1,7 @@
 //! Scene loading: JSON text to a validated, resolved [`Scene`].
 //!
 //! Validation is by hand over our own JSON tree rather than through serde
-//! derives, because SCENE_FORMAT.md requires every error to name its key
+//! derives, because docs/scene-format.md requires every error to name its key
 //! path (`instances[3].material`), and derive errors only give a line and
 //! column. Everything the contract leaves undefined is rejected, never
 //! guessed: the renderer must not silently render something else.
@@ -16,7 +16,7 @@ use glam::{DQuat, DVec3, Vec3};
 use std::collections::HashMap;
 use std::path::Path;
 
-/// The largest image side the renderer accepts (SCENE_FORMAT.md: "an image
+/// The largest image side the renderer accepts (docs/scene-format.md: "an image
 /// over 16384 x 16384 pixels" cannot be rendered).
 pub const MAX_IMAGE_SIDE: u32 = 16384;
 /// Largest world-space coordinate of any vertex (after its instance's
@@ -407,7 +407,7 @@ impl Cx<'_> {
         let width = side("width")?;
         let height = side("height")?;
 
-        // The renderer's own formulas (SCENE_FORMAT.md, Camera), in f32 as it
+        // The renderer's own formulas (docs/scene-format.md, Camera), in f32 as it
         // computes them, must give finite unit vectors.
         let delta = look_at - position;
         let Some(forward) = delta.try_normalize() else {
@@ -468,6 +468,14 @@ impl Cx<'_> {
             "conductor" => &["type", "reflectance", "roughness"],
             "dielectric" => &["type", "ior"],
             "emitter" => &["type", "radiance"],
+            "translucent" => {
+                return Err(self.invalid(
+                    &type_path,
+                    "the scene format's \"translucent\" material (a medium inside a dielectric) \
+                     is not implemented in this version of nppp"
+                        .into(),
+                ));
+            }
             other => {
                 return Err(self.invalid(
                     &type_path,

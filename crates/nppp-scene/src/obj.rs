@@ -1,4 +1,4 @@
-//! A small Wavefront OBJ reader for exactly what SCENE_FORMAT.md promises:
+//! A small Wavefront OBJ reader for exactly what docs/scene-format.md promises:
 //! `v`, `vn`, and `f` in the forms `v`, `v/vt`, `v//vn`, `v/vt/vn` with
 //! negative (relative) indices, polygons triangulated as the fan
 //! (p0, p(i), p(i+1)) in file order.

@@ -1,4 +1,4 @@
-//! The built-in mesh sources of SCENE_FORMAT.md (`quad`, `box`, `icosphere`)
+//! The built-in mesh sources of docs/scene-format.md (`quad`, `box`, `icosphere`)
 //! as pure functions of already validated numbers. Vertex order and
 //! triangle winding follow the contract exactly, because other renderers
 //! compare images against ours and the front side of an emitter or a

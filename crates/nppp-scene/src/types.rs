@@ -4,7 +4,7 @@
 use glam::{Quat, Vec3};
 use std::path::PathBuf;
 
-/// A pinhole camera exactly as SCENE_FORMAT.md defines it.
+/// A pinhole camera exactly as docs/scene-format.md defines it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Camera {
     pub position: Vec3,

@@ -1,4 +1,4 @@
-//! One test per error class of SCENE_FORMAT.md ("Errors") and of the
+//! One test per error class of docs/scene-format.md ("Errors") and of the
 //! loader's own strictness, each asserting the exact key path it names.
 
 mod common;

@@ -1,4 +1,4 @@
-//! Mesh sources and transforms against the conventions of SCENE_FORMAT.md.
+//! Mesh sources and transforms against the conventions of docs/scene-format.md.
 
 mod common;
 

@@ -1,4 +1,4 @@
-//! OBJ faces in every form SCENE_FORMAT.md lists, fan triangulation in file
+//! OBJ faces in every form docs/scene-format.md lists, fan triangulation in file
 //! order, and the `smooth` switch.
 
 mod common;
