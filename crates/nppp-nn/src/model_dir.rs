@@ -47,6 +47,9 @@ pub mod files {
     pub const TRAIN_CONFIG: &str = "train_config.json";
     pub const META: &str = "meta.json";
     pub const LOG: &str = "log.csv";
+    /// The training curves `nppp train` draws from the log (`nppp plot-log`).
+    pub const LOG_SVG: &str = "log.svg";
+    pub const LOG_PNG: &str = "log.png";
     pub const CHECKPOINT: &str = "checkpoint";
     pub const CHECKPOINT_TMP: &str = "checkpoint.tmp";
     pub const CHECKPOINT_OLD: &str = "checkpoint.old";
@@ -63,6 +66,8 @@ pub mod files {
         TRAIN_CONFIG,
         META,
         LOG,
+        LOG_SVG,
+        LOG_PNG,
         CHECKPOINT,
         CHECKPOINT_TMP,
         CHECKPOINT_OLD,
