@@ -1,6 +1,6 @@
 //! `nppp render`.
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use nppp_render::estimator::{BatchDecoder, EstimatorMode, EstimatorModel, Estimators};
 use nppp_render::{RenderOptions, RenderScene, image_io};
@@ -59,6 +59,12 @@ pub struct RenderArgs {
     /// those masks (the image is biased dark by design).
     #[arg(long, value_enum, default_value_t = EstimatorChoice::Neural)]
     pub estimators: EstimatorChoice,
+    /// Next-event estimation through the estimator: at each entry, sample
+    /// the lights from one vertex of the skipped path (picked by throughput)
+    /// and weight an emitter the exit ray hits by MIS. Needs an estimator
+    /// that returns vertices: so far only `--estimators oracle`.
+    #[arg(long)]
+    pub entry_nee: bool,
     /// Which decoder answers batched estimator queries: the plain-Rust CPU
     /// decoder, or the Burn module on a backend (burn-wgpu needs the `wgpu` feature).
     #[arg(long, value_enum, default_value_t = DecoderChoice::Cpu)]
@@ -254,6 +260,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             EstimatorMode::CostFloor
         }
     };
+    if a.entry_nee && !matches!(mode, EstimatorMode::Oracle) {
+        bail!(
+            "--entry-nee needs an estimator that returns a vertex of the skipped path: only \
+             --estimators oracle does so far (the .nppp format holds exits only)"
+        );
+    }
     let mut rs = if matches!(mode, EstimatorMode::Off) {
         RenderScene::new(&scene)
     } else {
@@ -262,6 +274,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     rs.estimators = Estimators::load(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;
     if let Some(e) = &mut rs.estimators {
+        e.nee_at_entries = a.entry_nee;
         attach_decoders(e, a.decoder)?;
     }
     let build = t0.elapsed().as_secs_f64();

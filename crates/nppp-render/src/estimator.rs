@@ -12,7 +12,8 @@
 use crate::accel::{Accel, SceneHit};
 use crate::bvh4::Visit;
 use crate::integrator::PathState;
-use crate::object_walk::{ObjectTracer, Walk};
+use crate::bsdf::Bsdf;
+use crate::object_walk::{ObjectTracer, Walk, WalkVertex};
 use crate::scene_data::SurfaceKind;
 use glam::Vec3;
 use nppp_estimator::{DecodeRepairs, EXIT_FEATURES, EstimatorSampler, Exit};
@@ -70,6 +71,64 @@ pub struct Estimators {
     pub per_instance: Vec<Option<u32>>,
     /// P: an estimator is used once a path has made at least this many bounces.
     pub min_bounces: u32,
+    /// Next-event estimation at one skipped vertex per entry (issue 18): the
+    /// estimator returns a vertex of the skipped path, the renderer samples
+    /// the lights there, and an emitter the exit ray hits gets the MIS
+    /// weight of the last skipped vertex's BSDF sample. Only the oracle can
+    /// return vertices so far; neural estimators ignore it.
+    pub nee_at_entries: bool,
+}
+
+/// The skipped vertices of one entry as the renderer uses them (mesh space).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct SkippedVertices {
+    /// The vertex for next-event estimation, picked among the vertices where
+    /// it may happen in proportion to the luminance of their throughput; its
+    /// `beta` is already divided by the probability of the pick.
+    pub nee: Option<(WalkVertex, Bsdf)>,
+    /// The last vertex's position and the solid-angle pdf of its BSDF sample
+    /// (the exit direction); `None` for a delta lobe or no vertex (an emitter
+    /// hit next counts with MIS weight 1).
+    pub last: Option<(Vec3, f32)>,
+}
+
+/// Picks the vertex for next-event estimation among `verts` (those before
+/// `budget` internal bounces: NEE there still fits under M) with
+/// probability proportional to the luminance of its throughput, using `u`.
+pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> SkippedVertices {
+    let last = verts
+        .last()
+        .filter(|v| !v.delta && v.pdf > 0.0)
+        .map(|v| (v.point, v.pdf));
+    let weight = |v: &WalkVertex| {
+        if v.index < budget {
+            nppp_geom::luminance(v.beta).max(0.0)
+        } else {
+            0.0
+        }
+    };
+    let total: f32 = verts.iter().map(weight).sum();
+    if bsdf.is_delta() || !(total > 0.0) || !total.is_finite() {
+        return SkippedVertices { nee: None, last };
+    }
+    let mut target = u * total;
+    let mut chosen = None;
+    for v in verts {
+        let w = weight(v);
+        if w <= 0.0 {
+            continue;
+        }
+        chosen = Some((*v, w));
+        if target < w {
+            break;
+        }
+        target -= w;
+    }
+    let nee = chosen.map(|(mut v, w)| {
+        v.beta *= total / w;
+        (v, bsdf)
+    });
+    SkippedVertices { nee, last }
 }
 
 /// A path's ray entering an estimator sphere, in that estimator's unit frame.
@@ -267,6 +326,9 @@ pub struct EntryBatch {
     outputs: Vec<f32>,
     rows: Vec<usize>,
     pub exits: Vec<Exit>,
+    /// Per entry, parallel to `exits`: the vertices the renderer still uses.
+    pub skipped: Vec<SkippedVertices>,
+    walk_vertices: Vec<WalkVertex>,
 }
 
 impl EntryBatch {
@@ -277,10 +339,14 @@ impl EntryBatch {
         ests: &Estimators,
         scene: &crate::scene_data::RenderScene,
         paths: &mut [PathState],
+        max_bounces: u32,
         stats: &mut EstimatorStats,
     ) {
         self.exits.clear();
         self.exits.resize(self.entries.len(), Exit::default());
+        self.skipped.clear();
+        self.skipped
+            .resize(self.entries.len(), SkippedVertices::default());
         stats.entries += self.entries.len() as u64;
         for (ei, est) in ests.list.iter().enumerate() {
             self.rows.clear();
@@ -360,8 +426,22 @@ impl EntryBatch {
                     };
                     for &i in &self.rows {
                         let (path, entry) = &self.entries[i];
-                        let rng = &mut paths[*path].rng;
-                        self.exits[i] = match tracer.walk(&entry.ray, rng) {
+                        let path = &mut paths[*path];
+                        let walk = if ests.nee_at_entries {
+                            let verts = &mut self.walk_vertices;
+                            verts.clear();
+                            let walk =
+                                tracer.walk_recording(&entry.ray, &mut path.rng, |v| verts.push(v));
+                            let u_pick = path.rng.uniform();
+                            if let SurfaceKind::Scatter(bsdf) = surface {
+                                let budget = max_bounces.saturating_sub(path.depth);
+                                self.skipped[i] = pick_skipped(verts, *bsdf, budget, u_pick);
+                            }
+                            walk
+                        } else {
+                            tracer.walk(&entry.ray, &mut path.rng)
+                        };
+                        self.exits[i] = match walk {
                             Walk::Exit(e) => e,
                             // The exact mask said hit, so the walk hits too; keep the path alive straight through.
                             Walk::Miss => Exit {
@@ -539,6 +619,7 @@ impl Estimators {
             list,
             per_instance,
             min_bounces,
+            nee_at_entries: false,
         }))
     }
 

@@ -13,7 +13,7 @@
 
 use crate::accel::SceneHit;
 use crate::bsdf::Bsdf;
-use crate::estimator::{EntryBatch, EstimatorStats, Meet};
+use crate::estimator::{EntryBatch, EstimatorStats, Meet, SkippedVertices};
 use crate::scene_data::{RenderScene, SurfaceKind};
 use glam::{Vec2, Vec3};
 use nppp_geom::sampling::power_heuristic;
@@ -204,24 +204,64 @@ impl Wavefront {
         if self.batch.entries.is_empty() {
             return;
         }
-        self.batch
-            .answer(ests, scene, &mut self.paths, &mut self.estimator_stats);
+        self.batch.answer(
+            ests,
+            scene,
+            &mut self.paths,
+            settings.max_bounces,
+            &mut self.estimator_stats,
+        );
         self.next.clear();
         self.next.resize(self.paths.len(), Next::Terminate);
         for (k, (i, entry)) in self.batch.entries.iter().enumerate() {
             let est = &ests.list[ests.per_instance[entry.instance as usize].unwrap_or(0) as usize];
             let exit = self.batch.exits[k];
+            let path = &mut self.paths[*i];
+            if ests.nee_at_entries {
+                light_skipped_vertex(scene, path, entry.instance, &self.batch.skipped[k]);
+            }
             self.next[*i] = follow_exit(
                 scene,
                 settings,
-                &mut self.paths[*i],
+                path,
                 entry.instance,
                 &est.sphere,
                 &exit,
+                &self.batch.skipped[k],
                 &mut self.estimator_stats,
             );
         }
     }
+}
+
+/// Next-event estimation at the skipped vertex an estimator returned (mesh
+/// space of `instance`), against the whole scene, the object included. The
+/// random numbers are drawn whether or not there is a vertex.
+fn light_skipped_vertex(
+    scene: &RenderScene,
+    path: &mut PathState,
+    instance: u32,
+    skipped: &SkippedVertices,
+) {
+    let u_light = path.rng.uniform();
+    let u_light2 = path.rng.uniform2();
+    let Some((v, bsdf)) = &skipped.nee else {
+        return;
+    };
+    let x = &scene.accel.instances[instance as usize];
+    let p = x.point_to_world(v.point);
+    let ng = x.dir_to_world(v.ng).normalize();
+    let ns = x.dir_to_world(v.ns).normalize();
+    let wo_world = x.dir_to_world(v.wo).normalize();
+    let (frame, ng_side) = shading_frame(bsdf, ng, ns, wo_world);
+    let vertex = SurfaceVertex {
+        p,
+        ng_side,
+        frame,
+        wo: frame.to_local(wo_world),
+        eps: scene.offset_at(p, instance),
+    };
+    path.radiance += path.beta * v.beta * sample_ld(scene, bsdf, &vertex, u_light, u_light2);
 }
 
 /// Continues a path from an estimator exit. The exit ray starts from the exit
@@ -235,6 +275,7 @@ fn follow_exit(
     instance: u32,
     sphere: &nppp_geom::BoundingSphere,
     e: &nppp_estimator::Exit,
+    skipped: &SkippedVertices,
     stats: &mut EstimatorStats,
 ) -> Next {
     path.radiance += path.beta * e.radiance;
@@ -251,9 +292,20 @@ fn follow_exit(
     let origin_unit = e.position - e.direction * e.position.dot(e.direction);
     path.origin = x.point_to_world(sphere.from_unit_point(origin_unit));
     path.dir = x.dir_to_world(e.direction).normalize();
-    // No NEE happened at the skipped vertices: an emitter hit next counts fully.
-    path.prev_delta = true;
-    path.prev_point = path.origin;
+    match skipped.last {
+        // Light was sampled at the skipped vertices: an emitter hit next is
+        // the BSDF technique of the last one, weighted against it.
+        Some((last, pdf)) => {
+            path.prev_delta = false;
+            path.prev_pdf = pdf;
+            path.prev_point = x.point_to_world(last);
+        }
+        // No NEE at the skipped vertices: an emitter hit next counts fully.
+        None => {
+            path.prev_delta = true;
+            path.prev_point = path.origin;
+        }
+    }
     path.skip_instance = instance;
     Next::Continue
 }
@@ -300,24 +352,14 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
     // that the stream position never depends on scene content).
     let u_light = path.rng.uniform();
     let u_light2 = path.rng.uniform2();
-    if !bsdf.is_delta() && !scene.lights.is_empty() {
-        let origin = offset_point(p, ng_side, ng_side, eps);
-        if let Some(ls) = scene.lights.sample(origin, u_light, u_light2) {
-            // Only the side the path arrived on can receive light for opaque two-sided surfaces.
-            if ls.wi.dot(ng_side) > 0.0 {
-                let (f, bsdf_pdf) = bsdf.eval(wo, frame.to_local(ls.wi));
-                if f != Vec3::ZERO {
-                    let light_eps = (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL)
-                        .max(ls.offset_floor);
-                    let tmax = ls.dist - light_eps;
-                    if tmax > 0.0 && !scene.plain().occluded(origin, ls.wi, tmax) {
-                        let w = power_heuristic(ls.pdf, bsdf_pdf);
-                        path.radiance += path.beta * f * ls.radiance * (w / ls.pdf);
-                    }
-                }
-            }
-        }
-    }
+    let vertex = SurfaceVertex {
+        p,
+        ng_side,
+        frame,
+        wo,
+        eps,
+    };
+    path.radiance += path.beta * sample_ld(scene, &bsdf, &vertex, u_light, u_light2);
 
     // BSDF sampling.
     let u_lobe = path.rng.uniform();
@@ -354,6 +396,58 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
         return Next::Terminate;
     }
     Next::Continue
+}
+
+/// A scattering vertex as next-event estimation sees it (world space).
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceVertex {
+    pub p: Vec3,
+    /// Geometric normal on the side the path arrived from.
+    pub ng_side: Vec3,
+    /// Shading frame (its normal on the same side).
+    pub frame: Frame,
+    /// Towards the previous vertex, in the shading frame.
+    pub wo: Vec3,
+    /// How far to move a ray origin off the surface here.
+    pub eps: f32,
+}
+
+/// Next-event estimation at a vertex (pbrt's `SampleLd`): one point on the
+/// lights chosen by power, its shadow ray against the whole scene (the
+/// plain layout: every estimator object is there as real geometry), weighted
+/// by the power heuristic against BSDF sampling. Returns the radiance it
+/// carries towards `wo`, per unit throughput. Zero for delta lobes.
+#[inline]
+pub fn sample_ld(
+    scene: &RenderScene,
+    bsdf: &Bsdf,
+    v: &SurfaceVertex,
+    u_light: f32,
+    u_light2: Vec2,
+) -> Vec3 {
+    if bsdf.is_delta() || scene.lights.is_empty() {
+        return Vec3::ZERO;
+    }
+    let origin = offset_point(v.p, v.ng_side, v.ng_side, v.eps);
+    let Some(ls) = scene.lights.sample(origin, u_light, u_light2) else {
+        return Vec3::ZERO;
+    };
+    // Only the side the path arrived on can receive light for opaque two-sided surfaces.
+    if ls.wi.dot(v.ng_side) <= 0.0 {
+        return Vec3::ZERO;
+    }
+    let (f, bsdf_pdf) = bsdf.eval(v.wo, v.frame.to_local(ls.wi));
+    if f == Vec3::ZERO {
+        return Vec3::ZERO;
+    }
+    let light_eps =
+        (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL).max(ls.offset_floor);
+    let tmax = ls.dist - light_eps;
+    if tmax <= 0.0 || scene.plain().occluded(origin, ls.wi, tmax) {
+        return Vec3::ZERO;
+    }
+    let w = power_heuristic(ls.pdf, bsdf_pdf);
+    f * ls.radiance * (w / ls.pdf)
 }
 
 /// The shading frame at a vertex and the geometric normal on the side the

@@ -26,6 +26,28 @@ pub struct ObjectTracer<'a> {
     pub max_internal_bounces: u32,
 }
 
+/// A scattering vertex inside the object, in mesh space, as a walk passes it:
+/// what next-event estimation at that vertex needs.
+#[derive(Clone, Copy, Debug)]
+pub struct WalkVertex {
+    pub point: Vec3,
+    /// Geometric normal (the mesh's outward side).
+    pub ng: Vec3,
+    /// Shading normal on the geometric normal's side (not flipped to `wo`'s).
+    pub ns: Vec3,
+    /// Towards the previous vertex (or the entry).
+    pub wo: Vec3,
+    /// Throughput from the entry up to this vertex, before it scatters.
+    pub beta: Vec3,
+    /// Internal bounces before this vertex (0: the first hit).
+    pub index: u32,
+    /// Solid-angle pdf of the direction sampled here (0 if sampling failed):
+    /// for the last vertex, the MIS weight of an emitter the exit ray hits.
+    pub pdf: f32,
+    /// Whether that direction came from a delta lobe.
+    pub delta: bool,
+}
+
 /// The result of one walk.
 #[derive(Clone, Copy, Debug)]
 pub enum Walk {
@@ -47,6 +69,17 @@ impl ObjectTracer<'_> {
     /// Follows the unit-frame ray `ray` (starting on or outside the sphere)
     /// through the object with the random stream `rng`.
     pub fn walk(&self, ray: &Ray, rng: &mut SampleRng) -> Walk {
+        self.walk_recording(ray, rng, |_| {})
+    }
+
+    /// [`Self::walk`], passing each scattering vertex to `record` once its
+    /// direction is sampled (the same random numbers: the walk is the same).
+    pub fn walk_recording(
+        &self,
+        ray: &Ray,
+        rng: &mut SampleRng,
+        mut record: impl FnMut(WalkVertex),
+    ) -> Walk {
         let r = self.sphere.radius;
         let mut o = self.sphere.from_unit_point(ray.origin);
         let mut d = ray.dir;
@@ -88,8 +121,19 @@ impl ObjectTracer<'_> {
             let (frame, _) = shading_frame(&bsdf, ng, ns, wo);
             let u_lobe = rng.uniform();
             let u_dir = rng.uniform2();
+            let sampled = sample_scatter(&bsdf, &frame, ng, wo, u_lobe, u_dir);
+            record(WalkVertex {
+                point: p,
+                ng,
+                ns,
+                wo,
+                beta,
+                index: bounces,
+                pdf: sampled.map_or(0.0, |s| s.1.pdf),
+                delta: sampled.is_some_and(|s| s.1.delta),
+            });
             bounces += 1;
-            let Some((wi, bs)) = sample_scatter(&bsdf, &frame, ng, wo, u_lobe, u_dir) else {
+            let Some((wi, bs)) = sampled else {
                 return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
             };
             beta *= bs.weight;
