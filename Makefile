@@ -10,14 +10,22 @@ SCENE ?= data/scenes/cornell-box.json
 SPP ?= 64
 OUT ?= out
 
-# The default object's estimator: data -> model -> baked file. The baked file
-# is committed, so a fresh clone renders with it at once; `make bake` re-bakes
-# it (making the data and the model first if they are missing).
-OBJECT_SCENE := data/scenes/cornell-box.json
+# An object's estimator: data -> model -> baked file. The baked files are
+# committed, so a fresh clone renders with them at once; `make bake` re-bakes
+# one (making the data and the model first if they are missing). OBJECT picks
+# which: knot (the default scene's diffuse knot), glass (the same knot as
+# smooth glass, data/scenes/cornell-glass.json) or gold (a rough gold
+# conductor, data/scenes/cornell-gold.json), e.g. `make bake OBJECT=glass`.
+OBJECT ?= knot
+OBJECT_SCENE_knot := data/scenes/cornell-box.json
+OBJECT_SCENE_glass := data/scenes/cornell-glass.json
+OBJECT_SCENE_gold := data/scenes/cornell-gold.json
+OBJECT_SCENE := $(or $(OBJECT_SCENE_$(OBJECT)),$(error OBJECT=$(OBJECT): choose knot, glass or gold))
 OBJECT_INSTANCE := 6
-DATA := $(OUT)/data/cornell-knot.nppd
-MODEL := $(OUT)/model/cornell-knot
-ESTIMATOR := models/cornell-knot.nppp
+OBJECT_NAME := cornell-$(OBJECT)
+DATA := $(OUT)/data/$(OBJECT_NAME).nppd
+MODEL := $(OUT)/model/$(OBJECT_NAME)
+ESTIMATOR := models/$(OBJECT_NAME).nppp
 # The committed estimator was made with exactly these (crates/nppp-nn/README.md):
 # 1 M rays (about 1 minute, 207 MiB), 24000 training steps (about 15-18
 # minutes on 2 cores; --minutes 0 keeps the run bit-reproducible), latent
@@ -25,7 +33,11 @@ ESTIMATOR := models/cornell-knot.nppp
 # `nppp gen`'s and `nppp train`'s defaults are that recipe
 # (nppp-estimator/src/recipe.rs): 1 M rays, k = 64.
 GEN_FLAGS ?= --seed 0
-TRAIN_FLAGS ?= --seed 1 --minutes 0
+# The glass and gold estimators were trained with the recipe shortened to
+# 10000 steps (about 7 minutes on 2 cores each); the knot with the full 24000.
+TRAIN_STEPS_glass := --steps 10000
+TRAIN_STEPS_gold := --steps 10000
+TRAIN_FLAGS ?= --seed 1 --minutes 0 $(TRAIN_STEPS_$(OBJECT))
 BAKE_FLAGS ?= --latent-grid 32 --bits 4 --mask-grid 64 --mask-bits 4
 P ?= 2
 
