@@ -1,6 +1,6 @@
 //! The estimator's hot paths on the committed default estimator
-//! (`models/cornell-knot.nppp`): latent and mask grid lookups (quadrilinear,
-//! incoherent rays), and the decoder at several batch sizes, on the
+//! (`models/cornell-knot.nppp`): latent and mask grid lookups (quadrilinear
+//! and stochastic, incoherent rays), and the decoder at several batch sizes, on the
 //! plain-Rust CPU decoder (row by row, and as matrix products from
 //! `GEMM_MIN_ROWS` rows) and on Burn's CPU backends.
 
@@ -34,6 +34,21 @@ fn grids(c: &mut Criterion) {
             let mut acc = 0.0;
             for p in &pairs {
                 s.latent(p, &mut z);
+                acc += z[0];
+            }
+            acc
+        })
+    });
+    // Stochastic filtering: one corner, picked by its weight (the random
+    // numbers drawn as the renderer draws them, from a PCG32 stream).
+    g.bench_function("latent_32^4x16_4bit_stochastic", |b| {
+        let mut z = vec![0.0f32; s.latent_dim()];
+        let mut rng = SampleRng::from_seed(5);
+        b.iter(|| {
+            let mut acc = 0.0;
+            for p in &pairs {
+                let u = [rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()];
+                s.latent_stochastic(p, u, &mut z);
                 acc += z[0];
             }
             acc

@@ -2,7 +2,9 @@
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use nppp_render::estimator::{BatchDecoder, EstimatorMode, EstimatorModel, Estimators};
+use nppp_render::estimator::{
+    BatchDecoder, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
+};
 use nppp_render::{RenderOptions, RenderScene, image_io};
 use std::path::{Path, PathBuf};
 
@@ -65,6 +67,11 @@ pub struct RenderArgs {
     /// that returns vertices: so far only `--estimators oracle`.
     #[arg(long)]
     pub entry_nee: bool,
+    /// How an estimator entry reads the latent grid: quadrilinear
+    /// interpolation of 16 corners, or one corner picked with the
+    /// probability of its weight (stochastic filtering, one memory access).
+    #[arg(long, value_enum, default_value_t = LatentLookupChoice::Interpolate)]
+    pub latent_lookup: LatentLookupChoice,
     /// Which decoder answers batched estimator queries: the plain-Rust CPU
     /// decoder, or the Burn module on a backend (burn-wgpu needs the `wgpu` feature).
     #[arg(long, value_enum, default_value_t = DecoderChoice::Cpu)]
@@ -76,6 +83,12 @@ pub struct RenderArgs {
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LatentLookupChoice {
+    Interpolate,
+    Stochastic,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -275,6 +288,10 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         .with_context(|| a.scene.display().to_string())?;
     if let Some(e) = &mut rs.estimators {
         e.nee_at_entries = a.entry_nee;
+        e.latent_lookup = match a.latent_lookup {
+            LatentLookupChoice::Interpolate => LatentLookup::Interpolate,
+            LatentLookupChoice::Stochastic => LatentLookup::Stochastic,
+        };
         attach_decoders(e, a.decoder)?;
     }
     let build = t0.elapsed().as_secs_f64();

@@ -157,6 +157,15 @@ impl EstimatorSampler {
         self.baked.latent.interpolate(pair, out);
     }
 
+    /// One grid node's latent into `out[..latent_dim]`, picked with the
+    /// probability of its interpolation weight (stochastic filtering, see
+    /// [`crate::grid::QuantizedGrid::lookup_stochastic`]): one node read
+    /// instead of sixteen.
+    #[inline]
+    pub fn latent_stochastic(&self, pair: &SpherePair, u: [f32; 4], out: &mut [f32]) {
+        self.baked.latent.lookup_stochastic(pair, u, out);
+    }
+
     /// One exit for the chord `pair`, driven by `r` (`noise_dim` standard
     /// normals; panics if shorter). The exit is in the unit sphere's frame.
     pub fn sample(&self, pair: &SpherePair, r: &[f32], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) -> Exit {

@@ -77,6 +77,20 @@ pub struct Estimators {
     /// weight of the last skipped vertex's BSDF sample. Only the oracle can
     /// return vertices so far; neural estimators ignore it.
     pub nee_at_entries: bool,
+    /// How an entry reads the latent grid.
+    pub latent_lookup: LatentLookup,
+}
+
+/// How a neural estimator reads its latent grid at an entry.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LatentLookup {
+    /// Quadrilinear interpolation of the 16 corners (the thesis' lookup).
+    #[default]
+    Interpolate,
+    /// One corner picked with the probability of its weight (stochastic
+    /// filtering): one memory access instead of 16, unbiased in expectation
+    /// over the mixture of the corners' distributions.
+    Stochastic,
 }
 
 /// The skipped vertices of one entry as the renderer uses them (mesh space).
@@ -369,8 +383,14 @@ impl EntryBatch {
                     for (k, &i) in self.rows.iter().enumerate() {
                         let (path, entry) = &self.entries[i];
                         let row = &mut self.inputs[k * width..(k + 1) * width];
-                        sampler.latent(&entry.pair, &mut row[..ld]);
                         let rng = &mut paths[*path].rng;
+                        match ests.latent_lookup {
+                            LatentLookup::Interpolate => sampler.latent(&entry.pair, &mut row[..ld]),
+                            LatentLookup::Stochastic => {
+                                let u = [rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()];
+                                sampler.latent_stochastic(&entry.pair, u, &mut row[..ld]);
+                            }
+                        }
                         for v in &mut row[ld..] {
                             *v = rng.normal();
                         }
@@ -620,6 +640,7 @@ impl Estimators {
             per_instance,
             min_bounces,
             nee_at_entries: false,
+            latent_lookup: LatentLookup::Interpolate,
         }))
     }
 
