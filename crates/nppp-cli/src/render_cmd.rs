@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use nppp_render::estimator::{
-    BatchDecoder, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
+    BatchDecoder, EntryNee, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
 };
 use nppp_render::{RenderOptions, RenderScene, image_io};
 use std::path::{Path, PathBuf};
@@ -61,12 +61,14 @@ pub struct RenderArgs {
     /// those masks (the image is biased dark by design).
     #[arg(long, value_enum, default_value_t = EstimatorChoice::Neural)]
     pub estimators: EstimatorChoice,
-    /// Next-event estimation through the estimator: at each entry, sample
-    /// the lights from one vertex of the skipped path (picked by throughput)
-    /// and weight an emitter the exit ray hits by MIS. Needs an estimator
-    /// that returns vertices: so far only `--estimators oracle`.
-    #[arg(long)]
-    pub entry_nee: bool,
+    /// Next-event estimation through the estimator. `first`: sample the
+    /// lights at the entry's first vertex (found by tracing the entry ray
+    /// against the real mesh) and weight an emitter hit by a one-bounce exit
+    /// by MIS; works with any estimator. `picked`: at one vertex of the
+    /// skipped path picked by throughput; needs an estimator that returns
+    /// vertices (so far only `--estimators oracle`). `off`: the thesis.
+    #[arg(long, value_enum, default_value_t = EntryNeeChoice::Off)]
+    pub entry_nee: EntryNeeChoice,
     /// How an estimator entry reads the latent grid: quadrilinear
     /// interpolation of 16 corners, or one corner picked with the
     /// probability of its weight (stochastic filtering, one memory access).
@@ -83,6 +85,13 @@ pub struct RenderArgs {
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EntryNeeChoice {
+    Off,
+    First,
+    Picked,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -273,10 +282,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             EstimatorMode::CostFloor
         }
     };
-    if a.entry_nee && !matches!(mode, EstimatorMode::Oracle) {
+    if a.entry_nee == EntryNeeChoice::Picked && !matches!(mode, EstimatorMode::Oracle) {
         bail!(
-            "--entry-nee needs an estimator that returns a vertex of the skipped path: only \
-             --estimators oracle does so far (the .nppp format holds exits only)"
+            "--entry-nee picked needs an estimator that returns a vertex of the skipped path: \
+             only --estimators oracle does so far (the .nppp format holds exits only); \
+             --entry-nee first works with any estimator"
         );
     }
     let mut rs = if matches!(mode, EstimatorMode::Off) {
@@ -287,7 +297,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     rs.estimators = Estimators::load(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;
     if let Some(e) = &mut rs.estimators {
-        e.nee_at_entries = a.entry_nee;
+        e.entry_nee = match a.entry_nee {
+            EntryNeeChoice::Off => EntryNee::Off,
+            EntryNeeChoice::First => EntryNee::FirstVertex,
+            EntryNeeChoice::Picked => EntryNee::PickedVertex,
+        };
         e.latent_lookup = match a.latent_lookup {
             LatentLookupChoice::Interpolate => LatentLookup::Interpolate,
             LatentLookupChoice::Stochastic => LatentLookup::Stochastic,

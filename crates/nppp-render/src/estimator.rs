@@ -44,11 +44,7 @@ pub enum EstimatorModel {
     /// Ground truth: traces the object alone from the entry ray. Exact up to
     /// the interaction with other geometry inside the sphere, so it tests the
     /// integration independently of any network.
-    Oracle {
-        mesh: usize,
-        surface: SurfaceKind,
-        max_internal_bounces: u32,
-    },
+    Oracle { max_internal_bounces: u32 },
     /// A timing instrument, not an estimate: the baked estimator's mask
     /// decides entries as in a neural render, and every entry ends its path
     /// at no further cost (no latent lookup, no decoder, no continuation).
@@ -62,6 +58,25 @@ pub struct Estimator {
     pub model: EstimatorModel,
     /// In mesh space.
     pub sphere: BoundingSphere,
+    /// The scene mesh and the surface it stands for (one estimator serves
+    /// one (mesh, material) pair): what the oracle traces, and where
+    /// first-vertex NEE finds its vertex.
+    pub mesh: usize,
+    pub surface: SurfaceKind,
+}
+
+impl Estimator {
+    /// The real object alone, as the oracle walks it.
+    pub fn tracer<'a>(&self, scene: &'a crate::scene_data::RenderScene, max_internal_bounces: u32) -> ObjectTracer<'a> {
+        ObjectTracer {
+            blas: &scene.accel.blas[self.mesh],
+            surface: self.surface,
+            sphere: self.sphere,
+            geo_normals: &scene.geo_normals[self.mesh],
+            shading_normals: scene.shading_normals[self.mesh].as_deref(),
+            max_internal_bounces,
+        }
+    }
 }
 
 /// All estimators of a scene and which instance uses which.
@@ -71,12 +86,8 @@ pub struct Estimators {
     pub per_instance: Vec<Option<u32>>,
     /// P: an estimator is used once a path has made at least this many bounces.
     pub min_bounces: u32,
-    /// Next-event estimation at one skipped vertex per entry (issue 18): the
-    /// estimator returns a vertex of the skipped path, the renderer samples
-    /// the lights there, and an emitter the exit ray hits gets the MIS
-    /// weight of the last skipped vertex's BSDF sample. Only the oracle can
-    /// return vertices so far; neural estimators ignore it.
-    pub nee_at_entries: bool,
+    /// Next-event estimation at the skipped vertices (issue 18).
+    pub entry_nee: EntryNee,
     /// How an entry reads the latent grid.
     pub latent_lookup: LatentLookup,
 }
@@ -91,6 +102,26 @@ pub enum LatentLookup {
     /// filtering): one memory access instead of 16, unbiased in expectation
     /// over the mixture of the corners' distributions.
     Stochastic,
+}
+
+/// Next-event estimation through an estimator: which skipped vertex gets a
+/// light sample, and which exits are then weighted by MIS against it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum EntryNee {
+    /// None (the thesis): an emitter the exit ray hits counts fully.
+    #[default]
+    Off,
+    /// The entry's first vertex, found by tracing the entry ray against the
+    /// real mesh (one closest-hit query of its BVH); an exit that left after
+    /// that one bounce is weighted by MIS against the light sample there
+    /// (the BSDF pdf at the first vertex towards the exit direction). Needs
+    /// nothing from the estimator beyond its exit, so it works with any
+    /// estimator file; exact for the oracle.
+    FirstVertex,
+    /// One vertex of the skipped path, picked in proportion to its
+    /// throughput; MIS against the last vertex's BSDF sample. Needs the
+    /// estimator to return the vertex: the oracle only, so far.
+    PickedVertex,
 }
 
 /// The skipped vertices of one entry as the renderer uses them (mesh space).
@@ -122,6 +153,7 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
         }
     };
     let total: f32 = verts.iter().map(weight).sum();
+    // A NaN total fails `total > 0`.
     if bsdf.is_delta() || !(total > 0.0) || !total.is_finite() {
         return SkippedVertices { nee: None, last };
     }
@@ -143,6 +175,28 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
         (v, bsdf)
     });
     SkippedVertices { nee, last }
+}
+
+/// First-vertex NEE for one entry: the light sample at `first` (if it fits
+/// under M: `budget` > 0), and, when the exit left after exactly that one
+/// bounce, the BSDF pdf at `first` towards the exit direction for MIS. An
+/// exit direction the first vertex cannot scatter to (pdf 0: a network's
+/// exit that disagrees with the real surface) counts fully instead.
+pub fn first_vertex_skipped(first: Option<WalkVertex>, bsdf: Bsdf, budget: u32, exit: &Exit) -> SkippedVertices {
+    let Some(v) = first else {
+        return SkippedVertices::default();
+    };
+    if bsdf.is_delta() || budget == 0 {
+        return SkippedVertices::default();
+    }
+    let last = (exit.bounces == 1)
+        .then(|| {
+            let (frame, _) = crate::integrator::shading_frame(&bsdf, v.ng, v.ns, v.wo);
+            let (_, pdf) = bsdf.eval(frame.to_local(v.wo), frame.to_local(exit.direction));
+            (v.point, pdf)
+        })
+        .filter(|(_, pdf)| *pdf > 0.0 && pdf.is_finite());
+    SkippedVertices { nee: Some((v, bsdf)), last }
 }
 
 /// A path's ray entering an estimator sphere, in that estimator's unit frame.
@@ -321,9 +375,9 @@ impl Estimators {
             EstimatorModel::Neural { sampler, .. } | EstimatorModel::CostFloor { sampler } => {
                 sampler.hits(pair)
             }
-            EstimatorModel::Oracle { mesh, .. } => {
+            EstimatorModel::Oracle { .. } => {
                 let o = est.sphere.from_unit_point(unit_ray.origin);
-                accel.blas[*mesh]
+                accel.blas[est.mesh]
                     .intersect(o.into(), unit_ray.dir.into(), 0.0, f32::INFINITY)
                     .is_some()
             }
@@ -418,6 +472,15 @@ impl EntryBatch {
                             .unwrap_or(&[0.0; EXIT_FEATURES]);
                         self.exits[i] = tr.decode(f, max_b, &mut stats.repairs);
                     }
+                    if let (EntryNee::FirstVertex, SurfaceKind::Scatter(bsdf)) = (ests.entry_nee, est.surface) {
+                        let tracer = est.tracer(scene, max_b);
+                        for &i in &self.rows {
+                            let (path, entry) = &self.entries[i];
+                            let budget = max_bounces.saturating_sub(paths[*path].depth);
+                            let first = tracer.first_vertex(&entry.ray);
+                            self.skipped[i] = first_vertex_skipped(first, bsdf, budget, &self.exits[i]);
+                        }
+                    }
                 }
                 EstimatorModel::CostFloor { .. } => {
                     for &i in &self.rows {
@@ -431,35 +494,18 @@ impl EntryBatch {
                         };
                     }
                 }
-                EstimatorModel::Oracle {
-                    mesh,
-                    surface,
-                    max_internal_bounces,
-                } => {
-                    let tracer = ObjectTracer {
-                        blas: &scene.accel.blas[*mesh],
-                        surface: *surface,
-                        sphere: est.sphere,
-                        geo_normals: &scene.geo_normals[*mesh],
-                        shading_normals: scene.shading_normals[*mesh].as_deref(),
-                        max_internal_bounces: *max_internal_bounces,
-                    };
+                EstimatorModel::Oracle { max_internal_bounces } => {
+                    let tracer = est.tracer(scene, *max_internal_bounces);
                     for &i in &self.rows {
                         let (path, entry) = &self.entries[i];
                         let path = &mut paths[*path];
-                        let walk = if ests.nee_at_entries {
+                        let budget = max_bounces.saturating_sub(path.depth);
+                        let walk = if ests.entry_nee == EntryNee::Off {
+                            tracer.walk(&entry.ray, &mut path.rng)
+                        } else {
                             let verts = &mut self.walk_vertices;
                             verts.clear();
-                            let walk =
-                                tracer.walk_recording(&entry.ray, &mut path.rng, |v| verts.push(v));
-                            let u_pick = path.rng.uniform();
-                            if let SurfaceKind::Scatter(bsdf) = surface {
-                                let budget = max_bounces.saturating_sub(path.depth);
-                                self.skipped[i] = pick_skipped(verts, *bsdf, budget, u_pick);
-                            }
-                            walk
-                        } else {
-                            tracer.walk(&entry.ray, &mut path.rng)
+                            tracer.walk_recording(&entry.ray, &mut path.rng, |v| verts.push(v))
                         };
                         self.exits[i] = match walk {
                             Walk::Exit(e) => e,
@@ -472,6 +518,19 @@ impl EntryBatch {
                                 bounces: 0,
                             },
                         };
+                        if let SurfaceKind::Scatter(bsdf) = est.surface {
+                            let verts = &self.walk_vertices;
+                            self.skipped[i] = match ests.entry_nee {
+                                EntryNee::Off => SkippedVertices::default(),
+                                EntryNee::FirstVertex => {
+                                    first_vertex_skipped(verts.first().copied(), bsdf, budget, &self.exits[i])
+                                }
+                                EntryNee::PickedVertex => {
+                                    let u_pick = path.rng.uniform();
+                                    pick_skipped(verts, bsdf, budget, u_pick)
+                                }
+                            };
+                        }
                     }
                 }
             }
@@ -564,14 +623,15 @@ impl Estimators {
                 continue;
             }
             let mesh = &scene.meshes[inst.mesh];
+            let surface = crate::scene_data::surface_of(&scene.materials[inst.material]);
             let est = match mode {
                 EstimatorMode::Oracle => Estimator {
                     model: EstimatorModel::Oracle {
-                        mesh: inst.mesh,
-                        surface: crate::scene_data::surface_of(&scene.materials[inst.material]),
                         max_internal_bounces: ORACLE_MAX_INTERNAL_BOUNCES,
                     },
                     sphere: BoundingSphere::around(&mesh.positions, SPHERE_MARGIN),
+                    mesh: inst.mesh,
+                    surface,
                 },
                 _ => {
                     let file_err = |err| EstimatorLoadError::File { instance: ii, err };
@@ -627,7 +687,12 @@ impl Estimators {
                             decoder: None,
                         }
                     };
-                    Estimator { model, sphere }
+                    Estimator {
+                        model,
+                        sphere,
+                        mesh: inst.mesh,
+                        surface,
+                    }
                 }
             };
             list.push(est);
@@ -639,7 +704,7 @@ impl Estimators {
             list,
             per_instance,
             min_bounces,
-            nee_at_entries: false,
+            entry_nee: EntryNee::Off,
             latent_lookup: LatentLookup::Interpolate,
         }))
     }

@@ -13,7 +13,7 @@
 
 use crate::accel::SceneHit;
 use crate::bsdf::Bsdf;
-use crate::estimator::{EntryBatch, EstimatorStats, Meet, SkippedVertices};
+use crate::estimator::{EntryBatch, EntryNee, EstimatorStats, Meet, SkippedVertices};
 use crate::scene_data::{RenderScene, SurfaceKind};
 use glam::{Vec2, Vec3};
 use nppp_geom::sampling::power_heuristic;
@@ -217,7 +217,7 @@ impl Wavefront {
             let est = &ests.list[ests.per_instance[entry.instance as usize].unwrap_or(0) as usize];
             let exit = self.batch.exits[k];
             let path = &mut self.paths[*i];
-            if ests.nee_at_entries {
+            if ests.entry_nee != EntryNee::Off {
                 light_skipped_vertex(scene, path, entry.instance, &self.batch.skipped[k]);
             }
             self.next[*i] = follow_exit(

@@ -66,6 +66,37 @@ impl ObjectTracer<'_> {
             .is_some()
     }
 
+    /// The first vertex of a walk: where the unit-frame `ray` hits the mesh
+    /// (mesh space; `beta` 1, `pdf` 0), or `None` if it misses.
+    pub fn first_vertex(&self, ray: &Ray) -> Option<WalkVertex> {
+        let o = self.sphere.from_unit_point(ray.origin);
+        let d = ray.dir;
+        let h = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY)?;
+        let ng = self.geo_normals[h.prim as usize];
+        Some(WalkVertex {
+            point: o + d * h.t,
+            ng,
+            ns: self.shading_normal(&h, ng),
+            wo: -d,
+            beta: Vec3::ONE,
+            index: 0,
+            pdf: 0.0,
+            delta: false,
+        })
+    }
+
+    /// The interpolated vertex normal at a hit, on `ng`'s side (`ng` for flat meshes).
+    fn shading_normal(&self, h: &crate::accel::ObjectHit, ng: Vec3) -> Vec3 {
+        match self.shading_normals {
+            Some(n) => {
+                let [n0, n1, n2] = n[h.prim as usize];
+                let s = (n0 * (1.0 - h.b1 - h.b2) + n1 * h.b1 + n2 * h.b2).normalize_or_zero();
+                if s.dot(ng) > 0.0 { s } else { ng }
+            }
+            None => ng,
+        }
+    }
+
     /// Follows the unit-frame ray `ray` (starting on or outside the sphere)
     /// through the object with the random stream `rng`.
     pub fn walk(&self, ray: &Ray, rng: &mut SampleRng) -> Walk {
@@ -110,14 +141,7 @@ impl ObjectTracer<'_> {
             if bounces >= self.max_internal_bounces {
                 return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
             }
-            let ns = match self.shading_normals {
-                Some(n) => {
-                    let [n0, n1, n2] = n[h.prim as usize];
-                    let s = (n0 * (1.0 - h.b1 - h.b2) + n1 * h.b1 + n2 * h.b2).normalize_or_zero();
-                    if s.dot(ng) > 0.0 { s } else { ng }
-                }
-                None => ng,
-            };
+            let ns = self.shading_normal(&h, ng);
             let (frame, _) = shading_frame(&bsdf, ng, ns, wo);
             let u_lobe = rng.uniform();
             let u_dir = rng.uniform2();

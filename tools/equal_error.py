@@ -1,0 +1,98 @@
+#!/usr/bin/env python3
+"""Equal-error speed-ups of render configurations against plain path tracing,
+measured in one run: every configuration renders the scene at the same spp,
+in alternating rounds (seeds 1..rounds), against a high-spp PT reference.
+Prints per configuration the median render time, the mean relMSE, the image
+mean, the time and relMSE multiples of PT's at equal spp (the thesis'
+metric), and the equal-error speed-up (t_PT x relMSE_PT) / (t x relMSE).
+
+A configuration is a label and the extra `nppp render` flags, e.g.
+    --config "NPPP P=1" "--estimators neural --min-bounces 1"
+PT (`--estimators off`) is always measured first. The scene's render block
+gives M unless --max-bounces is set. Standard library only; not part of the
+pipeline or of `make test`.
+
+    python3 tools/equal_error.py --nppp ~/.cache/nppp-target/release/nppp \\
+        --scene data/scenes/cornell-glass.json --spp 64 --rounds 3 \\
+        --config "NPPP P=1" "--min-bounces 1" \\
+        --config "floor P=1" "--estimators cost-floor --min-bounces 1"
+"""
+
+import argparse
+import re
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+TIME = re.compile(r" in ([0-9.]+)s \(scene build")
+MEAN = re.compile(r"mean rgb \[([-0-9.e+ ]+)\]")
+RELMSE = re.compile(r"relMSE ([0-9.e+-]+),")
+
+
+def render(nppp, scene, spp, seed, flags, reference, out):
+    cmd = [nppp, "render", scene, "--spp", str(spp), "--seed", str(seed),
+           "--out", out, "--quiet"] + flags
+    if reference:
+        cmd += ["--reference", reference]
+    run = subprocess.run(cmd, capture_output=True, text=True)
+    if run.returncode != 0:
+        sys.exit(f"{' '.join(cmd)} failed:\n{run.stderr}")
+    t, m = TIME.search(run.stderr), MEAN.search(run.stderr)
+    r = RELMSE.search(run.stderr)
+    if not t or not m or (reference and not r):
+        sys.exit(f"cannot read the output of {' '.join(cmd)}:\n{run.stderr}")
+    mean = sum(float(x) for x in m.group(1).split()) / 3.0
+    return float(t.group(1)), (float(r.group(1)) if r else None), mean
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--nppp", required=True, help="the nppp binary")
+    ap.add_argument("--scene", required=True)
+    ap.add_argument("--spp", type=int, default=64)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--reference", help="reference EXR (rendered with PT if missing)")
+    ap.add_argument("--reference-spp", type=int, default=2048)
+    ap.add_argument("--max-bounces", type=int, help="M for every render (default: the scene's)")
+    ap.add_argument("--config", nargs=2, action="append", default=[],
+                    metavar=("LABEL", "FLAGS"), help="a configuration to compare with PT")
+    a = ap.parse_args()
+    common = ["--max-bounces", str(a.max_bounces)] if a.max_bounces is not None else []
+    tmp = tempfile.mkdtemp(prefix="nppp-equal-error-")
+    reference = a.reference or str(Path(tmp) / "reference.exr")
+    if not Path(reference).exists():
+        print(f"reference: PT at {a.reference_spp} spp -> {reference}", file=sys.stderr)
+        render(a.nppp, a.scene, a.reference_spp, 1000, ["--estimators", "off"] + common,
+               None, reference)
+    configs = [("PT", ["--estimators", "off"])] + [(l, shlex.split(f)) for l, f in a.config]
+    times = {l: [] for l, _ in configs}
+    errs = {l: [] for l, _ in configs}
+    means = {l: [] for l, _ in configs}
+    out = str(Path(tmp) / "img.exr")
+    for rnd in range(1, a.rounds + 1):
+        for label, flags in configs:
+            t, r, m = render(a.nppp, a.scene, a.spp, rnd, flags + common, reference, out)
+            times[label].append(t)
+            errs[label].append(r)
+            means[label].append(m)
+            print(f"round {rnd} {label:>24}: {t:7.3f} s  relMSE {r:.5f}  mean {m:.5f}",
+                  file=sys.stderr)
+    t_pt = statistics.median(times["PT"])
+    e_pt = statistics.mean(errs["PT"])
+    m_pt = statistics.mean(means["PT"])
+    print(f"\n{a.scene}, {a.spp} spp, {a.rounds} alternating rounds, reference {reference}\n")
+    print("| config | median time (s) | relMSE | mean / PT's | time x PT | relMSE x PT | equal-error speed-up |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for label, _ in configs:
+        t = statistics.median(times[label])
+        e = statistics.mean(errs[label])
+        m = statistics.mean(means[label])
+        print(f"| {label} | {t:.3f} | {e:.5f} | {m / m_pt:.4f} | {t / t_pt:.2f} | "
+              f"{e / e_pt:.2f} | {t_pt * e_pt / (t * e):.2f}x |")
+
+
+if __name__ == "__main__":
+    main()
