@@ -282,7 +282,17 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             EstimatorMode::CostFloor
         }
     };
-    if a.entry_nee == EntryNeeChoice::Picked && !matches!(mode, EstimatorMode::Oracle) {
+    if a.entry_nee != EntryNeeChoice::Off && (!has_estimators || mode == EstimatorMode::Off) {
+        eprintln!(
+            "warning: --entry-nee does nothing here: {}",
+            if has_estimators {
+                "--estimators off renders plain path tracing"
+            } else {
+                "no instance of the scene has an estimator"
+            }
+        );
+    }
+    if a.entry_nee == EntryNeeChoice::Picked && !matches!(mode, EstimatorMode::Oracle | EstimatorMode::Off) {
         bail!(
             "--entry-nee picked needs an estimator that returns a vertex of the skipped path: \
              only --estimators oracle does so far (the .nppp format holds exits only); \

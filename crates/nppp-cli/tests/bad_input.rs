@@ -757,6 +757,24 @@ fn absurd_flags_are_rejected_before_rendering() {
         &["--spp", "0"],
         &["--spp must be at least 1"],
     );
+    // Next-event estimation through the estimator at a picked vertex needs
+    // an estimator that returns vertices: refused for the network, with the
+    // alternative named; an unknown mode is a usage error.
+    render_fails(
+        "entry-nee-picked-neural",
+        &scene,
+        &["--entry-nee", "picked"],
+        &["--entry-nee picked needs", "--entry-nee first works"],
+    );
+    let o = nppp([
+        "render".as_ref(),
+        scene.as_os_str(),
+        "--entry-nee".as_ref(),
+        "everywhere".as_ref(),
+        "--out".as_ref(),
+        "/nonexistent/out.exr".as_ref(),
+    ]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
     let dir = scratch("threads-0");
     let out = dir.join("out.exr");
     let o = nppp([
