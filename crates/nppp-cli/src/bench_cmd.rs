@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The benchmark scenes, in `--scenes-dir`.
-const DEFAULT_SCENES: &[&str] = &["cornell-box", "tube", "room"];
+const DEFAULT_SCENES: &[&str] = &["cornell-box", "cornell-glass", "cornell-gold", "tube", "room"];
 /// Seeds of the reference's two halves: far from the seeds 1..N of the
 /// measured renders, whose random streams must not overlap the reference's.
 const REFERENCE_SEEDS: [u64; 2] = [0x5EED_0000_0001, 0x5EED_0000_0002];
@@ -60,9 +60,10 @@ pub struct BenchArgs {
     #[arg(long)]
     pub scale: Option<f64>,
     /// M: the reference's and the NPPP configurations' max bounces; plain
-    /// path tracing runs at every M' = 1..M.
-    #[arg(long, default_value_t = 5)]
-    pub max_bounces: u32,
+    /// path tracing runs at every M' = 1..M. Default: each scene's own
+    /// `render.max_bounces` (cornell-glass renders at M = 10, the rest at 5).
+    #[arg(long)]
+    pub max_bounces: Option<u32>,
     /// Also run PT + oracle (the real object traced alone in place of the
     /// network) at each P: the error the estimator's integration allows.
     #[arg(long)]
@@ -115,7 +116,10 @@ impl Plan {
             plan.scale.is_finite() && plan.scale > 0.0 && plan.scale <= 4.0,
             "--scale must be in (0, 4]"
         );
-        ensure!(a.max_bounces >= 1, "--max-bounces must be at least 1");
+        ensure!(
+            a.max_bounces.is_none_or(|m| m >= 1),
+            "--max-bounces must be at least 1"
+        );
         Ok(plan)
     }
 }
@@ -254,6 +258,8 @@ struct SceneResult {
     build_seconds: f64,
     reference: ReferenceMeta,
     reference_cached: bool,
+    /// M of the reference and the NPPP configurations (PT runs at 1..=M).
+    max_bounces: u32,
     configs: Vec<Config>,
     /// Configurations that could not run, with the reason.
     skipped: Vec<(String, String)>,
@@ -436,7 +442,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         .resize(Some(plan.scale), None, None)
         .map_err(anyhow::Error::msg)?;
     let (width, height) = (scene.camera.width, scene.camera.height);
-    let m = a.max_bounces;
+    let m = a.max_bounces.unwrap_or(scene.render.max_bounces);
 
     let t_build = Instant::now();
     // Plain path tracing gets its fastest layout (estimator instances merged
@@ -631,6 +637,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         build_seconds,
         reference: reference_meta,
         reference_cached,
+        max_bounces: m,
         configs,
         skipped,
         measurements,
@@ -1042,7 +1049,14 @@ fn report_markdown(
     let _ = writeln!(
         s,
         "- ladder: {:?} spp, {} seed(s) (1..={}), resolution x{} of each scene's camera, M = {}",
-        plan.ladder, plan.seeds, plan.seeds, plan.scale, a.max_bounces
+        plan.ladder,
+        plan.seeds,
+        plan.seeds,
+        plan.scale,
+        match a.max_bounces {
+            Some(m) => m.to_string(),
+            None => "each scene's render.max_bounces".to_string(),
+        }
     );
     if let Some(rss) = peak_rss_mib() {
         let _ = writeln!(s, "- peak memory of the bench process: {rss:.0} MiB");
@@ -1056,19 +1070,17 @@ fn report_markdown(
     );
     let _ = writeln!(
         s,
-        "- Ratios are against **PT M={}** (plain path tracing with the same M, the unbiased baseline), measured in this run. \
+        "- Ratios are against **PT at the scene's M** (plain path tracing with the same M, the unbiased baseline), measured in this run. \
          PT with a smaller M is cheaper and biased (darker); NPPP is biased by its network. \
          *Speed-up at equal error* = PT's time at a ladder point / the time the configuration needs for PT's error there \
          (log-log interpolation on the configuration's own curve; `>=` when its cheapest point is already better, \
-         `not reached` when no point of its ladder gets that low).\n",
-        a.max_bounces
+         `not reached` when no point of its ladder gets that low).\n"
     );
 
     // Summary across scenes.
     let _ = writeln!(
         s,
-        "## Summary: speed-up of NPPP at equal error, against PT M={}\n",
-        a.max_bounces
+        "## Summary: speed-up of NPPP at equal error, against PT at the scene's M\n"
     );
     let _ = writeln!(
         s,
@@ -1086,7 +1098,7 @@ fn report_markdown(
     );
     let _ = writeln!(s, "|---|---|{}---:|", "---|".repeat(plan.ladder.len()));
     for r in results {
-        let Some(bi) = baseline_index(r, a.max_bounces) else {
+        let Some(bi) = baseline_index(r, r.max_bounces) else {
             continue;
         };
         let base = cells(r, bi, &plan.ladder);
@@ -1129,7 +1141,7 @@ fn report_markdown(
     let _ = writeln!(s);
 
     for r in results {
-        scene_markdown(&mut s, a, plan, r);
+        scene_markdown(&mut s, plan, r);
     }
     s
 }
@@ -1146,7 +1158,7 @@ fn bias_note(mean_ratio: f64) -> String {
     }
 }
 
-fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
+fn scene_markdown(s: &mut String, plan: &Plan, r: &SceneResult) {
     let _ = writeln!(s, "## {}\n", r.name);
     let est = if r.estimator_files.is_empty() {
         "no estimators".to_string()
@@ -1232,7 +1244,7 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
     }
     let _ = writeln!(s);
 
-    let Some(bi) = baseline_index(r, a.max_bounces) else {
+    let Some(bi) = baseline_index(r, r.max_bounces) else {
         return;
     };
     let base = cells(r, bi, &plan.ladder);
@@ -1247,7 +1259,7 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
     let _ = writeln!(
         s,
         "### Equal spp: time and relMSE as a multiple of PT M={}'s\n",
-        a.max_bounces
+        r.max_bounces
     );
     let _ = writeln!(
         s,
@@ -1279,7 +1291,7 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
     let _ = writeln!(
         s,
         "### Equal time: relMSE as a multiple of PT M={}'s, at PT's render times (interpolated; `-` outside the configuration's measured times)\n",
-        a.max_bounces
+        r.max_bounces
     );
     let _ = writeln!(
         s,
@@ -1311,7 +1323,7 @@ fn scene_markdown(s: &mut String, a: &BenchArgs, plan: &Plan, r: &SceneResult) {
     let _ = writeln!(
         s,
         "### Equal error: speed-up against PT M={} (PT's time / the configuration's time for PT's relMSE)\n",
-        a.max_bounces
+        r.max_bounces
     );
     let _ = writeln!(
         s,
