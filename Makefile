@@ -39,7 +39,6 @@ TRAIN_STEPS_glass := --steps 10000
 TRAIN_STEPS_gold := --steps 10000
 TRAIN_FLAGS ?= --seed 1 --minutes 0 $(TRAIN_STEPS_$(OBJECT))
 BAKE_FLAGS ?= --latent-grid 32 --bits 4 --mask-grid 64 --mask-bits 4
-P ?= 2
 
 .PHONY: all build render test test-wgpu bench clean help data train bake speed
 all: render
@@ -83,12 +82,13 @@ REFERENCE := $(OUT)/reference-$(notdir $(basename $(SCENE)))-$(REF_SPP).exr
 $(REFERENCE): | build
 	$(NPPP) render $(SCENE) --spp $(REF_SPP) --seed 1000 --estimators off --out $@
 
-# Renders the default scene twice, plain path tracing and path tracing with
-# the committed estimator (never retrained or re-baked by this target), and
-# prints the time and error of each against the reference.
+# Renders the default scene twice, plain path tracing and with
+# `--estimators auto` (a pilot decides whether the committed estimator pays,
+# and from which P; never retrained or re-baked by this target), and prints
+# the decision and the time and error of each against the reference.
 render: build $(REFERENCE)
 	$(NPPP) render $(SCENE) --spp $(SPP) --estimators off --reference $(REFERENCE) --out $(OUT)/pt.exr --png $(OUT)/pt.png
-	$(NPPP) render $(SCENE) --spp $(SPP) --estimators neural --min-bounces $(P) --reference $(REFERENCE) --out $(OUT)/nppp.exr --png $(OUT)/nppp.png
+	$(NPPP) render $(SCENE) --spp $(SPP) --estimators auto --reference $(REFERENCE) --out $(OUT)/nppp.exr --png $(OUT)/nppp.png
 
 test:
 	cargo test --workspace

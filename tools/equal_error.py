@@ -57,10 +57,13 @@ def main():
     ap.add_argument("--reference", help="reference EXR (rendered with PT if missing)")
     ap.add_argument("--reference-spp", type=int, default=2048)
     ap.add_argument("--max-bounces", type=int, help="M for every render (default: the scene's)")
+    ap.add_argument("--common", default="",
+                    help="flags for every render, the reference's included (e.g. \"--scale 0.5\")")
     ap.add_argument("--config", nargs=2, action="append", default=[],
                     metavar=("LABEL", "FLAGS"), help="a configuration to compare with PT")
     a = ap.parse_args()
     common = ["--max-bounces", str(a.max_bounces)] if a.max_bounces is not None else []
+    common += shlex.split(a.common)
     tmp = tempfile.mkdtemp(prefix="nppp-equal-error-")
     reference = a.reference or str(Path(tmp) / "reference.exr")
     if not Path(reference).exists():

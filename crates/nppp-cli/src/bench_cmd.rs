@@ -658,7 +658,7 @@ fn attach(
         Kind::Oracle => oracle.take(),
     };
     rs.estimators = src.map(|mut e| {
-        e.min_bounces = c.p;
+        e.configure(c.p, nppp_render::estimator::EntryNee::Off);
         e
     });
     rs.estimators

@@ -59,7 +59,7 @@ pub struct RenderArgs {
     /// not a render: the baked masks decide entries and every entry ends its
     /// path for free, so its time is a lower bound for any estimator using
     /// those masks (the image is biased dark by design).
-    #[arg(long, value_enum, default_value_t = EstimatorChoice::Neural)]
+    #[arg(long, value_enum, default_value_t = EstimatorChoice::Auto)]
     pub estimators: EstimatorChoice,
     /// Next-event estimation through the estimator. `first`: sample the
     /// lights at the entry's first vertex (found by tracing the entry ray
@@ -109,6 +109,9 @@ pub enum TonemapChoice {
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum EstimatorChoice {
     Off,
+    /// A short pilot decides, per estimator, whether and how to use it
+    /// (nppp_render::auto).
+    Auto,
     Neural,
     Oracle,
     CostFloor,
@@ -153,6 +156,26 @@ fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
     }
     Ok(())
 }
+
+/// Per estimator of `ests`: "mesh/material" of the first instance using it.
+fn estimator_names(scene: &nppp_scene::Scene, ests: &Estimators) -> Vec<String> {
+    (0..ests.list.len())
+        .map(|i| {
+            ests.per_instance
+                .iter()
+                .position(|e| *e == Some(i as u32))
+                .map(|ii| {
+                    let inst = &scene.instances[ii];
+                    format!(
+                        "{}/{}",
+                        scene.mesh_names[inst.mesh], scene.material_names[inst.material]
+                    )
+                })
+                .unwrap_or_else(|| format!("estimator {i}"))
+        })
+        .collect()
+}
+
 
 /// The output paths are checked before rendering: a typo in `--out` must not
 /// cost the render, and an EXR must not be written under a `.png` name.
@@ -261,7 +284,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     }
     let has_estimators = scene.instances.iter().any(|i| i.estimator.is_some());
     if has_estimators
-        && a.estimators != EstimatorChoice::Off
+        && !matches!(a.estimators, EstimatorChoice::Off | EstimatorChoice::Auto)
         && settings.estimator_min_bounces >= settings.max_bounces
     {
         eprintln!(
@@ -273,7 +296,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     let t0 = std::time::Instant::now();
     let mode = match a.estimators {
         EstimatorChoice::Off => EstimatorMode::Off,
-        EstimatorChoice::Neural => EstimatorMode::Neural,
+        EstimatorChoice::Neural | EstimatorChoice::Auto => EstimatorMode::Neural,
         EstimatorChoice::Oracle => EstimatorMode::Oracle,
         EstimatorChoice::CostFloor => {
             eprintln!(
@@ -299,6 +322,13 @@ pub fn run(a: &RenderArgs) -> Result<()> {
              --entry-nee first works with any estimator"
         );
     }
+    let auto = a.estimators == EstimatorChoice::Auto;
+    if auto && (a.min_bounces.is_some() || a.entry_nee != EntryNeeChoice::Off) {
+        bail!(
+            "--estimators auto chooses P and the entry NEE itself; give --estimators neural \
+             with --min-bounces / --entry-nee to set them"
+        );
+    }
     let mut rs = if matches!(mode, EstimatorMode::Off) {
         RenderScene::new(&scene)
     } else {
@@ -307,11 +337,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     rs.estimators = Estimators::load(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;
     if let Some(e) = &mut rs.estimators {
-        e.entry_nee = match a.entry_nee {
+        let nee = match a.entry_nee {
             EntryNeeChoice::Off => EntryNee::Off,
             EntryNeeChoice::First => EntryNee::FirstVertex,
             EntryNeeChoice::Picked => EntryNee::PickedVertex,
         };
+        e.configure(settings.estimator_min_bounces, nee);
         e.latent_lookup = match a.latent_lookup {
             LatentLookupChoice::Interpolate => LatentLookup::Interpolate,
             LatentLookupChoice::Stochastic => LatentLookup::Stochastic,
@@ -319,13 +350,38 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         attach_decoders(e, a.decoder)?;
     }
     let build = t0.elapsed().as_secs_f64();
+    let mut pilot_seconds = 0.0;
+    if auto && let Some(ests) = rs.estimators.take() {
+        let names = estimator_names(&scene, &ests);
+        let t = std::time::Instant::now();
+        let pilot = nppp_render::auto::PilotOptions {
+            max_bounces: settings.max_bounces,
+            seed: settings.seed,
+            ..Default::default()
+        };
+        let (chosen, decision) = nppp_render::auto::decide(&mut rs, ests, &pilot);
+        rs.estimators = chosen;
+        pilot_seconds = t.elapsed().as_secs_f64();
+        for line in decision.describe(&names) {
+            eprintln!("auto: {line}");
+        }
+        eprintln!(
+            "auto: pilot {:.2} s ({} samples at {}x{})",
+            pilot_seconds,
+            decision.samples,
+            rs.camera.scaled(pilot.scale).width,
+            rs.camera.scaled(pilot.scale).height
+        );
+    }
     let opts = RenderOptions {
         spp: settings.spp,
         max_bounces: settings.max_bounces,
         seed: settings.seed,
         progress: !a.quiet,
     };
-    let (img, stats) = nppp_render::render(&rs, &opts);
+    let (img, mut stats) = nppp_render::render(&rs, &opts);
+    // The pilot is part of the render's time.
+    stats.seconds += pilot_seconds;
     image_io::write_exr(&img, &a.out).with_context(|| "writing the EXR")?;
     if let Some(p) = &a.png {
         let preview = image_io::Preview {
@@ -343,7 +399,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         eprintln!(
             "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {} decoder fallbacks, {:.2} MiB shared; repairs: {} degenerate, {} inward, {} clamped",
             a.estimators,
-            settings.estimator_min_bounces,
+            e.min_bounces,
             st.entries,
             st.mask_skips,
             st.ambiguous,
@@ -358,6 +414,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             eprintln!("warning: {w}");
         }
     }
+    eprintln!(
+        "traced: {:.3} M rays, {:.3} M shadow rays, {:.3} M BVH node visits",
+        stats.work.rays as f64 / 1e6,
+        stats.work.shadow_rays as f64 / 1e6,
+        stats.work.node_visits as f64 / 1e6
+    );
     eprintln!(
         "{}: {}x{} spp {} M {} in {:.2}s (scene build {:.2}s), {:.3} M samples/s, mean rgb [{:.4} {:.4} {:.4}]{}",
         a.out.display(),

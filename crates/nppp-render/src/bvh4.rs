@@ -456,6 +456,19 @@ impl InstanceBvh {
     }
 }
 
+thread_local! {
+    /// Nodes and leaves visited by every traversal on this thread: a
+    /// deterministic measure of traversal work (a render's time is not),
+    /// read per tile by the renderer. Added to once per traversal.
+    static NODE_VISITS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+}
+
+/// Nodes and leaves this thread's traversals have visited so far (take the
+/// difference around a piece of work).
+pub fn node_visits() -> u64 {
+    NODE_VISITS.with(|c| c.get())
+}
+
 impl Tree {
     fn empty() -> Self {
         Self {
@@ -479,13 +492,15 @@ impl Tree {
         mut leaf: impl FnMut(Range<usize>, &mut f32) -> Visit,
     ) {
         let mut tmax = tmax;
+        let mut visits = 0u32;
         if self.depth < 64 {
             let stack = &mut InlineStack::new();
-            self.walk(ray, tmin, &mut tmax, ordered, payload, stack, &mut leaf);
+            self.walk(ray, tmin, &mut tmax, ordered, payload, stack, &mut leaf, &mut visits);
         } else {
             let stack = &mut Vec::new();
-            self.walk(ray, tmin, &mut tmax, ordered, payload, stack, &mut leaf);
+            self.walk(ray, tmin, &mut tmax, ordered, payload, stack, &mut leaf, &mut visits);
         }
+        NODE_VISITS.with(|c| c.set(c.get() + visits as u64));
     }
 
     /// Asks the cache for a child the ray entered while the others are
@@ -515,9 +530,11 @@ impl Tree {
         payload: Payload,
         stack: &mut S,
         leaf: &mut F,
+        visits: &mut u32,
     ) {
         let mut code = self.root;
         loop {
+            *visits += 1;
             if code & LEAF == 0 {
                 let node = &self.nodes[code as usize];
                 let (near, mask) = ray.boxes(node, tmin, *tmax);

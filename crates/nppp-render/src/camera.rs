@@ -34,6 +34,17 @@ impl PinholeCamera {
         }
     }
 
+    /// The same view at `scale` times the resolution (at least 1 x 1; the
+    /// aspect ratio of the field of view is kept as it was).
+    pub fn scaled(&self, scale: f64) -> Self {
+        let side = |x: u32| ((x as f64 * scale).round().max(1.0) as u32).min(x.max(1));
+        Self {
+            width: side(self.width),
+            height: side(self.height),
+            ..*self
+        }
+    }
+
     /// The primary ray through film position `p` = (column, row) in pixels,
     /// continuous: pixel (i, j) covers [i, i+1) x [j, j+1).
     #[inline]

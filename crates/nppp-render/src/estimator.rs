@@ -63,6 +63,10 @@ pub struct Estimator {
     /// first-vertex NEE finds its vertex.
     pub mesh: usize,
     pub surface: SurfaceKind,
+    /// P for this estimator: used once a path has made this many bounces.
+    pub min_bounces: u32,
+    /// Next-event estimation through this estimator.
+    pub entry_nee: EntryNee,
 }
 
 impl Estimator {
@@ -84,10 +88,10 @@ pub struct Estimators {
     pub list: Vec<Estimator>,
     /// Per instance: index into `list`.
     pub per_instance: Vec<Option<u32>>,
-    /// P: an estimator is used once a path has made at least this many bounces.
+    /// The smallest P of the estimators in use (each has its own): paths
+    /// with fewer bounces need no estimator query at all. Kept by
+    /// [`Estimators::configure`] and [`Estimators::configure_one`].
     pub min_bounces: u32,
-    /// Next-event estimation at the skipped vertices (issue 18).
-    pub entry_nee: EntryNee,
     /// How an entry reads the latent grid.
     pub latent_lookup: LatentLookup,
 }
@@ -260,6 +264,7 @@ impl Estimators {
         o: Vec3,
         d: Vec3,
         skip: u32,
+        depth: u32,
         stats: &mut EstimatorStats,
     ) -> Meet {
         // Estimator instances are never merged: the merged world BLAS only
@@ -273,7 +278,9 @@ impl Estimators {
             if inst == skip {
                 return f32::INFINITY;
             }
-            if let Some(ei) = self.per_instance[inst as usize] {
+            if let Some(ei) = self.per_instance[inst as usize]
+                && depth >= self.list[ei as usize].min_bounces
+            {
                 let x = &accel.instances[inst as usize];
                 let est = &self.list[ei as usize];
                 let oo = x.point_to_object(o);
@@ -472,7 +479,7 @@ impl EntryBatch {
                             .unwrap_or(&[0.0; EXIT_FEATURES]);
                         self.exits[i] = tr.decode(f, max_b, &mut stats.repairs);
                     }
-                    if let (EntryNee::FirstVertex, SurfaceKind::Scatter(bsdf)) = (ests.entry_nee, est.surface) {
+                    if let (EntryNee::FirstVertex, SurfaceKind::Scatter(bsdf)) = (est.entry_nee, est.surface) {
                         let tracer = est.tracer(scene, max_b);
                         for &i in &self.rows {
                             let (path, entry) = &self.entries[i];
@@ -500,7 +507,7 @@ impl EntryBatch {
                         let (path, entry) = &self.entries[i];
                         let path = &mut paths[*path];
                         let budget = max_bounces.saturating_sub(path.depth);
-                        let walk = if ests.entry_nee == EntryNee::Off {
+                        let walk = if est.entry_nee == EntryNee::Off {
                             tracer.walk(&entry.ray, &mut path.rng)
                         } else {
                             let verts = &mut self.walk_vertices;
@@ -520,7 +527,7 @@ impl EntryBatch {
                         };
                         if let SurfaceKind::Scatter(bsdf) = est.surface {
                             let verts = &self.walk_vertices;
-                            self.skipped[i] = match ests.entry_nee {
+                            self.skipped[i] = match est.entry_nee {
                                 EntryNee::Off => SkippedVertices::default(),
                                 EntryNee::FirstVertex => {
                                     first_vertex_skipped(verts.first().copied(), bsdf, budget, &self.exits[i])
@@ -632,6 +639,8 @@ impl Estimators {
                     sphere: BoundingSphere::around(&mesh.positions, SPHERE_MARGIN),
                     mesh: inst.mesh,
                     surface,
+                    min_bounces,
+                    entry_nee: EntryNee::Off,
                 },
                 _ => {
                     let file_err = |err| EstimatorLoadError::File { instance: ii, err };
@@ -692,6 +701,8 @@ impl Estimators {
                         sphere,
                         mesh: inst.mesh,
                         surface,
+                        min_bounces,
+                        entry_nee: EntryNee::Off,
                     }
                 }
             };
@@ -704,9 +715,47 @@ impl Estimators {
             list,
             per_instance,
             min_bounces,
-            entry_nee: EntryNee::Off,
             latent_lookup: LatentLookup::Interpolate,
         }))
+    }
+
+    /// Sets P and the entry NEE of every estimator.
+    pub fn configure(&mut self, min_bounces: u32, entry_nee: EntryNee) {
+        for e in &mut self.list {
+            e.min_bounces = min_bounces;
+            e.entry_nee = entry_nee;
+        }
+        self.min_bounces = min_bounces;
+    }
+
+    /// Sets P and the entry NEE of estimator `index`, or (`None`) turns it
+    /// off: its instances are then traced as plain geometry.
+    pub fn configure_one(&mut self, index: usize, choice: Option<(u32, EntryNee)>) {
+        match choice {
+            Some((p, nee)) => {
+                self.list[index].min_bounces = p;
+                self.list[index].entry_nee = nee;
+            }
+            None => {
+                for e in self.per_instance.iter_mut() {
+                    if *e == Some(index as u32) {
+                        *e = None;
+                    }
+                }
+            }
+        }
+        self.min_bounces = self
+            .per_instance
+            .iter()
+            .flatten()
+            .map(|&e| self.list[e as usize].min_bounces)
+            .min()
+            .unwrap_or(u32::MAX);
+    }
+
+    /// Whether any instance still uses an estimator.
+    pub fn any_in_use(&self) -> bool {
+        self.per_instance.iter().any(Option::is_some)
     }
 
     /// Bytes of estimator data shared by all instances.

@@ -114,6 +114,28 @@ impl PixelSum {
     }
 }
 
+/// Work a render did, counted: deterministic at any thread count, unlike
+/// its time, so that decisions made from a pilot render (`--estimators
+/// auto`) are deterministic too.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WorkCounts {
+    /// Closest-hit queries (one per live path per wavefront step).
+    pub rays: u64,
+    /// Shadow rays traced for next-event estimation.
+    pub shadow_rays: u64,
+    /// BVH nodes and leaves visited by all traversals (closest hits, shadow
+    /// rays, estimator queries, oracle walks).
+    pub node_visits: u64,
+}
+
+impl WorkCounts {
+    pub fn merge(&mut self, o: &WorkCounts) {
+        self.rays += o.rays;
+        self.shadow_rays += o.shadow_rays;
+        self.node_visits += o.node_visits;
+    }
+}
+
 /// Reusable buffers of one worker: no allocation per bounce.
 #[derive(Default)]
 pub struct Wavefront {
@@ -123,6 +145,7 @@ pub struct Wavefront {
     next: Vec<Next>,
     batch: EntryBatch,
     pub estimator_stats: EstimatorStats,
+    pub work: WorkCounts,
 }
 
 /// Outcome of advancing one path by one event.
@@ -140,6 +163,9 @@ impl Wavefront {
         settings: &IntegratorSettings,
         film: &mut [PixelSum],
     ) {
+        // Everything below runs on this thread: the visits counted here are
+        // this batch's own.
+        let visits_before = crate::bvh4::node_visits();
         while !self.paths.is_empty() {
             self.intersect(scene, settings);
             self.answer_estimators(scene, settings);
@@ -147,7 +173,9 @@ impl Wavefront {
             for r in 0..self.paths.len() {
                 let next = match self.meets[r] {
                     Meet::Nothing => Next::Terminate,
-                    Meet::Surface(hit) => shade(scene, settings, &mut self.paths[r], hit),
+                    Meet::Surface(hit) => {
+                        shade(scene, settings, &mut self.paths[r], hit, &mut self.work)
+                    }
                     Meet::Estimator(_) => self.next[r],
                 };
                 match next {
@@ -163,17 +191,19 @@ impl Wavefront {
             }
             self.paths.truncate(w);
         }
+        self.work.node_visits += crate::bvh4::node_visits() - visits_before;
     }
 
     fn intersect(&mut self, scene: &RenderScene, settings: &IntegratorSettings) {
         self.meets.clear();
+        self.work.rays += self.paths.len() as u64;
         let stats = &mut self.estimator_stats;
         let m = settings.max_bounces;
         self.meets.extend(self.paths.iter().map(|p| {
             match &scene.estimators {
                 // A path at depth M only looks for emission: the real mesh serves (and P >= M never estimates).
                 Some(est) if p.depth >= est.min_bounces && p.depth < m => {
-                    est.intersect(&scene.accel, p.origin, p.dir, p.skip_instance, stats)
+                    est.intersect(&scene.accel, p.origin, p.dir, p.skip_instance, p.depth, stats)
                 }
                 // Only a path that has just left an estimator skips an
                 // instance, and only the estimator layout keeps it apart.
@@ -217,8 +247,14 @@ impl Wavefront {
             let est = &ests.list[ests.per_instance[entry.instance as usize].unwrap_or(0) as usize];
             let exit = self.batch.exits[k];
             let path = &mut self.paths[*i];
-            if ests.entry_nee != EntryNee::Off {
-                light_skipped_vertex(scene, path, entry.instance, &self.batch.skipped[k]);
+            if est.entry_nee != EntryNee::Off {
+                light_skipped_vertex(
+                    scene,
+                    path,
+                    entry.instance,
+                    &self.batch.skipped[k],
+                    &mut self.work,
+                );
             }
             self.next[*i] = follow_exit(
                 scene,
@@ -242,6 +278,7 @@ fn light_skipped_vertex(
     path: &mut PathState,
     instance: u32,
     skipped: &SkippedVertices,
+    work: &mut WorkCounts,
 ) {
     let u_light = path.rng.uniform();
     let u_light2 = path.rng.uniform2();
@@ -261,7 +298,7 @@ fn light_skipped_vertex(
         wo: frame.to_local(wo_world),
         eps: scene.offset_at(p, instance),
     };
-    path.radiance += path.beta * v.beta * sample_ld(scene, bsdf, &vertex, u_light, u_light2);
+    path.radiance += path.beta * v.beta * sample_ld(scene, bsdf, &vertex, u_light, u_light2, work);
 }
 
 /// Continues a path from an estimator exit. The exit ray starts from the exit
@@ -320,7 +357,13 @@ fn offset_point(p: Vec3, n: Vec3, dir: Vec3, eps: f32) -> Vec3 {
     }
 }
 
-fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit: SceneHit) -> Next {
+fn shade(
+    scene: &RenderScene,
+    s: &IntegratorSettings,
+    path: &mut PathState,
+    hit: SceneHit,
+    work: &mut WorkCounts,
+) -> Next {
     let p = path.origin + path.dir * hit.t;
     let (ng, ns) = scene.normals_at(&hit);
     let wo_world = -path.dir;
@@ -359,7 +402,7 @@ fn shade(scene: &RenderScene, s: &IntegratorSettings, path: &mut PathState, hit:
         wo,
         eps,
     };
-    path.radiance += path.beta * sample_ld(scene, &bsdf, &vertex, u_light, u_light2);
+    path.radiance += path.beta * sample_ld(scene, &bsdf, &vertex, u_light, u_light2, work);
 
     // BSDF sampling.
     let u_lobe = path.rng.uniform();
@@ -424,6 +467,7 @@ pub fn sample_ld(
     v: &SurfaceVertex,
     u_light: f32,
     u_light2: Vec2,
+    work: &mut WorkCounts,
 ) -> Vec3 {
     if bsdf.is_delta() || scene.lights.is_empty() {
         return Vec3::ZERO;
@@ -443,7 +487,11 @@ pub fn sample_ld(
     let light_eps =
         (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL).max(ls.offset_floor);
     let tmax = ls.dist - light_eps;
-    if tmax <= 0.0 || scene.plain().occluded(origin, ls.wi, tmax) {
+    if tmax <= 0.0 {
+        return Vec3::ZERO;
+    }
+    work.shadow_rays += 1;
+    if scene.plain().occluded(origin, ls.wi, tmax) {
         return Vec3::ZERO;
     }
     let w = power_heuristic(ls.pdf, bsdf_pdf);

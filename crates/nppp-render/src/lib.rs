@@ -2,6 +2,7 @@
 //! integrator, estimator integration, and image output.
 
 pub mod accel;
+pub mod auto;
 pub mod bsdf;
 pub mod bvh4;
 pub mod camera;

@@ -3,7 +3,7 @@
 
 use crate::estimator::EstimatorStats;
 use crate::image_io::Image;
-use crate::integrator::{IntegratorSettings, PathState, PixelSum, Wavefront, jitter};
+use crate::integrator::{IntegratorSettings, PathState, PixelSum, Wavefront, WorkCounts, jitter};
 use crate::scene_data::RenderScene;
 use indicatif::{ProgressBar, ProgressDrawTarget};
 use nppp_geom::SampleRng;
@@ -30,6 +30,8 @@ pub struct RenderStats {
     /// Samples dropped because their radiance was NaN or infinite.
     pub dropped_samples: u64,
     pub estimators: crate::estimator::EstimatorStats,
+    /// Rays traced, counted (deterministic, unlike `seconds`).
+    pub work: WorkCounts,
 }
 
 impl RenderStats {
@@ -85,26 +87,28 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
     let start = Instant::now();
     let mut img = Image::new(w, h);
     let band_len = (w * TILE) as usize;
-    let (dropped, est) = img
+    let (dropped, (est, work)) = img
         .pixels
         .par_chunks_mut(band_len)
         .enumerate()
         .map(|(band, band_pixels)| {
             let y0 = band as u32 * TILE;
             let th = TILE.min(h - y0);
-            let tiles: Vec<(u32, Vec<PixelSum>, EstimatorStats)> = (0..w.div_ceil(TILE))
+            let tiles: Vec<(u32, Vec<PixelSum>, EstimatorStats, WorkCounts)> = (0..w.div_ceil(TILE))
                 .into_par_iter()
                 .map_init(Wavefront::default, |wf, tx| {
                     let x0 = tx * TILE;
                     let tw = TILE.min(w - x0);
                     let film = render_tile(scene, opts, &settings, wf, (x0, y0), (tw, th), &bar);
-                    (x0, film, wf.estimator_stats)
+                    (x0, film, wf.estimator_stats, wf.work)
                 })
                 .collect();
             let mut dropped = 0u64;
             let mut est = EstimatorStats::default();
-            for (x0, film, st) in tiles {
+            let mut work = WorkCounts::default();
+            for (x0, film, st, wk) in tiles {
                 est.merge(&st);
+                work.merge(&wk);
                 let tw = TILE.min(w - x0);
                 for (i, p) in film.iter().enumerate() {
                     let (x, y) = (x0 + i as u32 % tw, i as u32 / tw);
@@ -112,13 +116,14 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
                     dropped += p.dropped as u64;
                 }
             }
-            (dropped, est)
+            (dropped, (est, work))
         })
         .reduce(
-            || (0, EstimatorStats::default()),
-            |(da, mut ea), (db, eb)| {
+            || (0, Default::default()),
+            |(da, (mut ea, mut wa)), (db, (eb, wb))| {
                 ea.merge(&eb);
-                (da + db, ea)
+                wa.merge(&wb);
+                (da + db, (ea, wa))
             },
         );
     bar.finish_and_clear();
@@ -130,6 +135,7 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
             samples: total,
             dropped_samples: dropped,
             estimators: est,
+            work,
         },
     )
 }
@@ -147,6 +153,7 @@ fn render_tile(
     let w = scene.camera.width;
     let mut film = vec![PixelSum::default(); (tw * th) as usize];
     wf.estimator_stats = Default::default();
+    wf.work = WorkCounts::default();
     let px = (tw * th) as usize;
     let spp_per_batch = (BATCH_PATHS / px).max(1) as u32;
     let mut s0 = 0;

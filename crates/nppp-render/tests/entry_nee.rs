@@ -23,7 +23,7 @@ fn render(mode: EstimatorMode, p: u32, nee: EntryNee, spp: u32, seed: u64) -> Im
     };
     rs.estimators = Estimators::load(&scene, mode, p).unwrap();
     if let Some(e) = &mut rs.estimators {
-        e.entry_nee = nee;
+        e.configure(p, nee);
     }
     nppp_render::render(
         &rs,

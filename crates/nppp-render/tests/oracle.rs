@@ -53,7 +53,7 @@ fn render_mode_nee(
     let mut rs = RenderScene::for_estimators(&scene);
     rs.estimators = Estimators::load(&scene, mode, p).unwrap();
     if let Some(e) = &mut rs.estimators {
-        e.entry_nee = entry_nee;
+        e.configure(p, entry_nee);
     }
     nppp_render::render(
         &rs,

@@ -1,0 +1,105 @@
+//! `--estimators auto` (nppp_render::auto): the pilot's decision is a
+//! function of the scene and the seed only (the same at any thread count),
+//! it turns off an estimator that loses to path tracing (the default scene's
+//! diffuse knot, 0.3x-0.7x at equal error, BENCHMARKS.md), and it rejects
+//! a configuration whose image mean is wrong however little noise it has
+//! (the tube's estimator at P = 0 renders the tube's inside black).
+
+mod common;
+use common::*;
+use nppp_render::auto::{PilotOptions, decide};
+use nppp_render::estimator::{EstimatorMode, Estimators};
+use nppp_render::RenderScene;
+
+/// The scene `name` of data/scenes, `width` pixels wide (0: as it is).
+fn load(name: &str, width: u32) -> nppp_scene::Scene {
+    let mut scene =
+        nppp_scene::load_scene(&repo_root().join("data/scenes").join(name)).unwrap();
+    if width == 0 {
+        return scene;
+    }
+    let h = (scene.camera.height as u64 * width as u64 / scene.camera.width as u64).max(1);
+    scene.camera.width = width;
+    scene.camera.height = h as u32;
+    scene
+}
+
+fn pilot(scene: &nppp_scene::Scene, threads: usize) -> nppp_render::auto::Decision {
+    let mut rs = RenderScene::for_estimators(scene);
+    let ests = Estimators::load(scene, EstimatorMode::Neural, 0)
+        .unwrap()
+        .unwrap();
+    let opts = PilotOptions {
+        max_bounces: scene.render.max_bounces,
+        seed: 3,
+        ..Default::default()
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| decide(&mut rs, ests, &opts).1)
+}
+
+#[test]
+fn the_decision_is_the_same_at_any_thread_count_and_turns_off_a_losing_estimator() {
+    let scene = load("cornell-box.json", 128);
+    let one = pilot(&scene, 1);
+    let two = pilot(&scene, 2);
+    let three = pilot(&scene, 3);
+    for d in [&two, &three] {
+        assert_eq!(d.samples, one.samples);
+        assert_eq!(d.pt.rel_var, one.pt.rel_var);
+        assert_eq!(d.pt.cost, one.pt.cost);
+        for (a, b) in d.estimators.iter().zip(&one.estimators) {
+            assert_eq!(a.choice, b.choice);
+            for (x, y) in a.trials.iter().zip(&b.trials) {
+                assert_eq!((x.rel_var, x.cost), (y.rel_var, y.cost));
+            }
+        }
+    }
+    let knot = &one.estimators[0];
+    assert_eq!(knot.choice, None, "{:?}", knot.trials);
+    assert!(
+        knot.trials.iter().all(|t| t.efficiency < 1.0),
+        "{:?}",
+        knot.trials
+    );
+    // A render after an all-off decision is plain path tracing.
+    let mut rs = RenderScene::for_estimators(&scene);
+    let ests = Estimators::load(&scene, EstimatorMode::Neural, 0)
+        .unwrap()
+        .unwrap();
+    let (chosen, _) = decide(
+        &mut rs,
+        ests,
+        &PilotOptions {
+            max_bounces: 5,
+            seed: 3,
+            ..Default::default()
+        },
+    );
+    assert!(chosen.is_none());
+    assert_eq!(rs.camera.width, 128, "the pilot puts the camera back");
+}
+
+#[test]
+fn a_biased_configuration_is_rejected() {
+    // At the scene's own resolution: the pilot (a quarter of it) must see
+    // PT's light in the tube above its own noise.
+    let scene = load("tube.json", 0);
+    let d = pilot(&scene, 2);
+    let p0 = d.estimators[0]
+        .trials
+        .iter()
+        .find(|t| t.choice.is_some_and(|c| c.min_bounces == 0))
+        .unwrap();
+    assert!(p0.biased, "P = 0 on the tube: {p0:?} against PT {:?}", d.pt);
+    assert_eq!(p0.efficiency, 0.0);
+    assert_ne!(
+        d.estimators[0].choice.map(|c| c.min_bounces),
+        Some(0),
+        "{:?}",
+        d.estimators[0]
+    );
+}
