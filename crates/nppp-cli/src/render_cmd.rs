@@ -369,8 +369,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             "auto: pilot {:.2} s ({} samples at {}x{})",
             pilot_seconds,
             decision.samples,
-            rs.camera.scaled(pilot.scale).width,
-            rs.camera.scaled(pilot.scale).height
+            decision.width,
+            decision.height
         );
     }
     let opts = RenderOptions {

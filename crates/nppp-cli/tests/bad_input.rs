@@ -972,21 +972,30 @@ fn interrupted_render_keeps_the_previous_output() {
 /// samples are reported.
 #[test]
 fn valid_scenes_render_finite_images() {
-    for (name, must_say) in [
-        ("ok_tiny.json", ""),
-        ("ok_estimator.json", "estimators (Neural"),
-        ("ok_radiance_3e38.json", "non-finite samples dropped"),
+    for (name, flags, must_say) in [
+        ("ok_tiny.json", &[][..], ""),
+        (
+            "ok_estimator.json",
+            &["--estimators", "neural"][..],
+            "estimators (Neural",
+        ),
+        // The default, auto, runs its pilot with the same nonsense estimator.
+        ("ok_estimator.json", &[][..], "auto: ball/white"),
+        ("ok_radiance_3e38.json", &[][..], "non-finite samples dropped"),
     ] {
         let dir = scratch(name);
         let out = dir.join("out.exr");
         std::fs::write(&out, PREVIOUS).unwrap();
-        let o = nppp([
+        let scene = file(name);
+        let mut args: Vec<&OsStr> = vec![
             "render".as_ref(),
-            file(name).as_os_str(),
+            scene.as_os_str(),
             "--quiet".as_ref(),
             "--out".as_ref(),
             out.as_os_str(),
-        ]);
+        ];
+        args.extend(flags.iter().map(OsStr::new));
+        let o = nppp(&args);
         assert_eq!(o.status.code(), Some(0), "{name}: {}", text(&o));
         assert!(
             text(&o).contains(must_say),

@@ -126,6 +126,9 @@ pub struct Decision {
     pub estimators: Vec<EstimatorDecision>,
     /// Camera samples the pilot rendered (all its renders).
     pub samples: u64,
+    /// The pilot's image size.
+    pub width: u32,
+    pub height: u32,
 }
 
 impl Decision {
@@ -213,6 +216,7 @@ pub fn decide(
         .max(16.0 / camera.width.min(camera.height).max(1) as f64)
         .min(1.0);
     rs.camera = camera.scaled(scale);
+    let (width, height) = (rs.camera.width, rs.camera.height);
     let mut samples = 0u64;
     let mut run = |rs: &RenderScene, seed: u64| {
         let (img, st) = render(
@@ -334,6 +338,8 @@ pub fn decide(
         pt,
         estimators: decisions,
         samples,
+        width,
+        height,
     };
     (ests.any_in_use().then_some(ests), decision)
 }
