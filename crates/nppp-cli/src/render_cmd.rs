@@ -354,9 +354,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if auto && let Some(ests) = rs.estimators.take() {
         let names = estimator_names(&scene, &ests);
         let t = std::time::Instant::now();
+        // A pilot of a few percent of the render: 4 spp per half for a
+        // 64-spp render, down to 1 below 32 spp.
         let pilot = nppp_render::auto::PilotOptions {
             max_bounces: settings.max_bounces,
             seed: settings.seed,
+            spp: (settings.spp / 16).clamp(1, 4),
             ..Default::default()
         };
         let (chosen, decision) = nppp_render::auto::decide(&mut rs, ests, &pilot);
