@@ -766,6 +766,12 @@ fn absurd_flags_are_rejected_before_rendering() {
         &["--entry-nee", "picked"],
         &["--entry-nee picked needs", "--entry-nee first works"],
     );
+    render_fails(
+        "auto-with-p",
+        &scene,
+        &["--estimators", "auto", "--min-bounces", "1"],
+        &["--estimators auto chooses P"],
+    );
     let o = nppp([
         "render".as_ref(),
         scene.as_os_str(),

@@ -4,9 +4,9 @@
 //! path tracing.
 //!
 //! The pilot renders the scene at a quarter of its resolution, 4 samples per
-//! pixel, twice (two seeds), as plain PT and once per candidate P of each
-//! estimator (the others off), plus one more PT render that only normalizes
-//! the error. For each configuration it measures
+//! pixel, twice (two seeds), as plain PT and once per candidate P (1 and 2;
+//! see [`PilotOptions::min_p`]) of each estimator (the others off), plus one
+//! more PT render that only normalizes the error. For each configuration it measures
 //! - the error per sample: each pixel's variance from the two halves,
 //!   `(a - b)^2 / 4`, relative to the normalizing render as relMSE is to its
 //!   reference (`/ (r^2 + 0.01)`, `r` blurred over 5 x 5 pixels), averaged
@@ -60,6 +60,11 @@ pub struct PilotOptions {
     pub seed: u64,
     /// Efficiency over PT's a configuration needs to be chosen.
     pub margin: f64,
+    /// Smallest P tried. 1 by default: at P = 0 what the camera sees of the
+    /// object is the network's statistical answer (glass seen directly is
+    /// blurred), a loss of sharpness that keeps the image mean and that no
+    /// variance measurement sees.
+    pub min_p: u32,
     /// Largest P tried.
     pub max_p: u32,
     /// Relative difference of a configuration's image mean from PT's
@@ -77,6 +82,7 @@ impl Default for PilotOptions {
             max_bounces: 5,
             seed: 0,
             margin: 1.15,
+            min_p: 1,
             max_p: 2,
             bias_tolerance: 0.03,
         }
@@ -183,7 +189,7 @@ pub fn label(c: Option<Choice>) -> String {
     }
 }
 
-/// The configurations tried for an estimator: P = 0..=max_p below M, with
+/// The configurations tried for an estimator: P = min_p..=max_p below M, with
 /// first-vertex NEE where its surface can take a light sample (without it,
 /// an opaque object's estimator lost 2x-5x more at equal error on every
 /// scene measured, BENCHMARKS.md), without on delta lobes (smooth glass).
@@ -192,7 +198,7 @@ fn candidates(surface: SurfaceKind, opts: &PilotOptions) -> Vec<Choice> {
         SurfaceKind::Scatter(b) if !b.is_delta() => EntryNee::FirstVertex,
         _ => EntryNee::Off,
     };
-    (0..=opts.max_p.min(opts.max_bounces.saturating_sub(1)))
+    (opts.min_p..=opts.max_p.min(opts.max_bounces.saturating_sub(1)))
         .map(|p| Choice {
             min_bounces: p,
             entry_nee,

@@ -1,5 +1,7 @@
-//! The path tracer: two-level BVH, materials, camera, the wavefront
-//! integrator, estimator integration, and image output.
+//! The path tracer: two-level BVH, materials, lights, camera, the wavefront
+//! integrator, estimator integration (queries, batched answers, next-event
+//! estimation through an estimator, the `auto` pilot), object walks
+//! (training data and the oracle), error metrics, and image output.
 
 pub mod accel;
 pub mod auto;

@@ -87,8 +87,19 @@ fn the_decision_is_the_same_at_any_thread_count_and_turns_off_a_losing_estimator
 fn a_biased_configuration_is_rejected() {
     // At the scene's own resolution: the pilot (a quarter of it) must see
     // PT's light in the tube above its own noise.
+    // P = 0 is not tried by default (PilotOptions::min_p): ask for it.
     let scene = load("tube.json", 0);
-    let d = pilot(&scene, 2);
+    let mut rs = RenderScene::for_estimators(&scene);
+    let ests = Estimators::load(&scene, EstimatorMode::Neural, 0)
+        .unwrap()
+        .unwrap();
+    let opts = PilotOptions {
+        max_bounces: scene.render.max_bounces,
+        seed: 3,
+        min_p: 0,
+        ..Default::default()
+    };
+    let d = decide(&mut rs, ests, &opts).1;
     let p0 = d.estimators[0]
         .trials
         .iter()
