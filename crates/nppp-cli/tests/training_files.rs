@@ -709,3 +709,55 @@ fn an_interrupted_run_saves_a_checkpoint_and_says_how_to_resume() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// What a user reads after training and baking (issue 21): a few aligned
+/// summary lines, never a debug dump; a log row every `--log-every` steps;
+/// the curves drawn beside the log, and redrawn by `nppp plot-log`.
+#[test]
+fn train_and_bake_print_summaries_and_log_every_n_steps() {
+    let dir = scratch("summaries");
+    let data = dir.join("data.nppd");
+    write_data(&data, 400, 4);
+    let model = dir.join("model");
+    let mut args = small_train(&data, &model, "2");
+    set_flag(&mut args, "--log-every", "5");
+    let o = nppp(&args);
+    assert_ok("train", &o);
+    let out = String::from_utf8_lossy(&o.stdout);
+    for needle in ["  steps       50 of 50", "  time        ", "  held-out    "] {
+        assert!(out.contains(needle), "train summary lacks {needle:?}:\n{out}");
+    }
+    assert!(!out.contains("TrainReport") && !out.contains('{'), "{out}");
+    let log = std::fs::read_to_string(model.join("log.csv")).unwrap();
+    let steps: Vec<u64> = log
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(1).unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(
+        steps.iter().filter(|s| *s % 5 == 0).count(),
+        10,
+        "rows every 5 steps of 50: {steps:?}"
+    );
+    let est = dir.join("m.nppp");
+    let o = nppp(bake_args(&model, &est, &[]));
+    assert_ok("bake", &o);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("  grids       "), "{out}");
+    assert!(!out.contains("BakeReport") && !out.contains('{'), "{out}");
+    // The curves: drawn by train when a font is found, always by plot-log
+    // to a named file when one is (a machine without fonts says so).
+    let svg = dir.join("curves.svg");
+    let o = nppp([
+        "plot-log".as_ref(),
+        model.as_os_str(),
+        "--out".as_ref(),
+        svg.as_os_str(),
+    ]);
+    if o.status.success() {
+        assert!(std::fs::read_to_string(&svg).unwrap().contains("<svg"));
+    } else {
+        assert!(stderr(&o).contains("font"), "{}", stderr(&o));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
