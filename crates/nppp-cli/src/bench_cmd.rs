@@ -19,7 +19,13 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The benchmark scenes, in `--scenes-dir`.
-const DEFAULT_SCENES: &[&str] = &["cornell-box", "cornell-glass", "cornell-gold", "tube", "room"];
+const DEFAULT_SCENES: &[&str] = &[
+    "cornell-box",
+    "cornell-glass",
+    "cornell-gold",
+    "tube",
+    "room",
+];
 /// Seeds of the reference's two halves: far from the seeds 1..N of the
 /// measured renders, whose random streams must not overlap the reference's.
 const REFERENCE_SEEDS: [u64; 2] = [0x5EED_0000_0001, 0x5EED_0000_0002];

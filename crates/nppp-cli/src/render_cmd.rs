@@ -176,7 +176,6 @@ fn estimator_names(scene: &nppp_scene::Scene, ests: &Estimators) -> Vec<String> 
         .collect()
 }
 
-
 /// The output paths are checked before rendering: a typo in `--out` must not
 /// cost the render, and an EXR must not be written under a `.png` name.
 /// Neither output may name an input (the reference, the scene, its meshes
@@ -315,7 +314,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             }
         );
     }
-    if a.entry_nee == EntryNeeChoice::Picked && !matches!(mode, EstimatorMode::Oracle | EstimatorMode::Off) {
+    if a.entry_nee == EntryNeeChoice::Picked
+        && !matches!(mode, EstimatorMode::Oracle | EstimatorMode::Off)
+    {
         bail!(
             "--entry-nee picked needs an estimator that returns a vertex of the skipped path: \
              only --estimators oracle does so far (the .nppp format holds exits only); \
@@ -370,10 +371,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         }
         eprintln!(
             "auto: pilot {:.2} s ({} samples at {}x{})",
-            pilot_seconds,
-            decision.samples,
-            decision.width,
-            decision.height
+            pilot_seconds, decision.samples, decision.width, decision.height
         );
     }
     let opts = RenderOptions {

@@ -987,7 +987,11 @@ fn valid_scenes_render_finite_images() {
         ),
         // The default, auto, runs its pilot with the same nonsense estimator.
         ("ok_estimator.json", &[][..], "auto: ball/white"),
-        ("ok_radiance_3e38.json", &[][..], "non-finite samples dropped"),
+        (
+            "ok_radiance_3e38.json",
+            &[][..],
+            "non-finite samples dropped",
+        ),
     ] {
         let dir = scratch(name);
         let out = dir.join("out.exr");

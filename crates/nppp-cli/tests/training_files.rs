@@ -725,7 +725,10 @@ fn train_and_bake_print_summaries_and_log_every_n_steps() {
     assert_ok("train", &o);
     let out = String::from_utf8_lossy(&o.stdout);
     for needle in ["  steps       50 of 50", "  time        ", "  held-out    "] {
-        assert!(out.contains(needle), "train summary lacks {needle:?}:\n{out}");
+        assert!(
+            out.contains(needle),
+            "train summary lacks {needle:?}:\n{out}"
+        );
     }
     assert!(!out.contains("TrainReport") && !out.contains('{'), "{out}");
     let log = std::fs::read_to_string(model.join("log.csv")).unwrap();

@@ -269,7 +269,12 @@ pub fn decide(
             let (a, ca, na) = run(rs, seeds[0]);
             let (b, cb, nb) = run(rs, seeds[1]);
             ests = rs.estimators.take().expect("put there above");
-            pilots.push((Some((index, choice)), a, b, (ca + cb) / (na + nb).max(1) as f64));
+            pilots.push((
+                Some((index, choice)),
+                a,
+                b,
+                (ca + cb) / (na + nb).max(1) as f64,
+            ));
         }
     }
     rs.camera = camera;

@@ -495,10 +495,28 @@ impl Tree {
         let mut visits = 0u32;
         if self.depth < 64 {
             let stack = &mut InlineStack::new();
-            self.walk(ray, tmin, &mut tmax, ordered, payload, stack, &mut leaf, &mut visits);
+            self.walk(
+                ray,
+                tmin,
+                &mut tmax,
+                ordered,
+                payload,
+                stack,
+                &mut leaf,
+                &mut visits,
+            );
         } else {
             let stack = &mut Vec::new();
-            self.walk(ray, tmin, &mut tmax, ordered, payload, stack, &mut leaf, &mut visits);
+            self.walk(
+                ray,
+                tmin,
+                &mut tmax,
+                ordered,
+                payload,
+                stack,
+                &mut leaf,
+                &mut visits,
+            );
         }
         NODE_VISITS.with(|c| c.set(c.get() + visits as u64));
     }

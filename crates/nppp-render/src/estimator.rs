@@ -10,9 +10,9 @@
 //! continues from its exit.
 
 use crate::accel::{Accel, SceneHit};
+use crate::bsdf::Bsdf;
 use crate::bvh4::Visit;
 use crate::integrator::PathState;
-use crate::bsdf::Bsdf;
 use crate::object_walk::{ObjectTracer, Walk, WalkVertex};
 use crate::scene_data::SurfaceKind;
 use glam::Vec3;
@@ -71,7 +71,11 @@ pub struct Estimator {
 
 impl Estimator {
     /// The real object alone, as the oracle walks it.
-    pub fn tracer<'a>(&self, scene: &'a crate::scene_data::RenderScene, max_internal_bounces: u32) -> ObjectTracer<'a> {
+    pub fn tracer<'a>(
+        &self,
+        scene: &'a crate::scene_data::RenderScene,
+        max_internal_bounces: u32,
+    ) -> ObjectTracer<'a> {
         ObjectTracer {
             blas: &scene.accel.blas[self.mesh],
             surface: self.surface,
@@ -186,7 +190,12 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
 /// bounce, the BSDF pdf at `first` towards the exit direction for MIS. An
 /// exit direction the first vertex cannot scatter to (pdf 0: a network's
 /// exit that disagrees with the real surface) counts fully instead.
-pub fn first_vertex_skipped(first: Option<WalkVertex>, bsdf: Bsdf, budget: u32, exit: &Exit) -> SkippedVertices {
+pub fn first_vertex_skipped(
+    first: Option<WalkVertex>,
+    bsdf: Bsdf,
+    budget: u32,
+    exit: &Exit,
+) -> SkippedVertices {
     let Some(v) = first else {
         return SkippedVertices::default();
     };
@@ -200,7 +209,10 @@ pub fn first_vertex_skipped(first: Option<WalkVertex>, bsdf: Bsdf, budget: u32, 
             (v.point, pdf)
         })
         .filter(|(_, pdf)| *pdf > 0.0 && pdf.is_finite());
-    SkippedVertices { nee: Some((v, bsdf)), last }
+    SkippedVertices {
+        nee: Some((v, bsdf)),
+        last,
+    }
 }
 
 /// A path's ray entering an estimator sphere, in that estimator's unit frame.
@@ -446,9 +458,12 @@ impl EntryBatch {
                         let row = &mut self.inputs[k * width..(k + 1) * width];
                         let rng = &mut paths[*path].rng;
                         match ests.latent_lookup {
-                            LatentLookup::Interpolate => sampler.latent(&entry.pair, &mut row[..ld]),
+                            LatentLookup::Interpolate => {
+                                sampler.latent(&entry.pair, &mut row[..ld])
+                            }
                             LatentLookup::Stochastic => {
-                                let u = [rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()];
+                                let u =
+                                    [rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()];
                                 sampler.latent_stochastic(&entry.pair, u, &mut row[..ld]);
                             }
                         }
@@ -479,13 +494,16 @@ impl EntryBatch {
                             .unwrap_or(&[0.0; EXIT_FEATURES]);
                         self.exits[i] = tr.decode(f, max_b, &mut stats.repairs);
                     }
-                    if let (EntryNee::FirstVertex, SurfaceKind::Scatter(bsdf)) = (est.entry_nee, est.surface) {
+                    if let (EntryNee::FirstVertex, SurfaceKind::Scatter(bsdf)) =
+                        (est.entry_nee, est.surface)
+                    {
                         let tracer = est.tracer(scene, max_b);
                         for &i in &self.rows {
                             let (path, entry) = &self.entries[i];
                             let budget = max_bounces.saturating_sub(paths[*path].depth);
                             let first = tracer.first_vertex(&entry.ray);
-                            self.skipped[i] = first_vertex_skipped(first, bsdf, budget, &self.exits[i]);
+                            self.skipped[i] =
+                                first_vertex_skipped(first, bsdf, budget, &self.exits[i]);
                         }
                     }
                 }
@@ -501,7 +519,9 @@ impl EntryBatch {
                         };
                     }
                 }
-                EstimatorModel::Oracle { max_internal_bounces } => {
+                EstimatorModel::Oracle {
+                    max_internal_bounces,
+                } => {
                     let tracer = est.tracer(scene, *max_internal_bounces);
                     for &i in &self.rows {
                         let (path, entry) = &self.entries[i];
@@ -529,9 +549,12 @@ impl EntryBatch {
                             let verts = &self.walk_vertices;
                             self.skipped[i] = match est.entry_nee {
                                 EntryNee::Off => SkippedVertices::default(),
-                                EntryNee::FirstVertex => {
-                                    first_vertex_skipped(verts.first().copied(), bsdf, budget, &self.exits[i])
-                                }
+                                EntryNee::FirstVertex => first_vertex_skipped(
+                                    verts.first().copied(),
+                                    bsdf,
+                                    budget,
+                                    &self.exits[i],
+                                ),
                                 EntryNee::PickedVertex => {
                                     let u_pick = path.rng.uniform();
                                     pick_skipped(verts, bsdf, budget, u_pick)

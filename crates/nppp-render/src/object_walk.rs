@@ -71,7 +71,9 @@ impl ObjectTracer<'_> {
     pub fn first_vertex(&self, ray: &Ray) -> Option<WalkVertex> {
         let o = self.sphere.from_unit_point(ray.origin);
         let d = ray.dir;
-        let h = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY)?;
+        let h = self
+            .blas
+            .intersect(o.into(), d.into(), 0.0, f32::INFINITY)?;
         let ng = self.geo_normals[h.prim as usize];
         Some(WalkVertex {
             point: o + d * h.t,

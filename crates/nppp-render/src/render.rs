@@ -94,7 +94,8 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
         .map(|(band, band_pixels)| {
             let y0 = band as u32 * TILE;
             let th = TILE.min(h - y0);
-            let tiles: Vec<(u32, Vec<PixelSum>, EstimatorStats, WorkCounts)> = (0..w.div_ceil(TILE))
+            let tiles: Vec<(u32, Vec<PixelSum>, EstimatorStats, WorkCounts)> = (0..w
+                .div_ceil(TILE))
                 .into_par_iter()
                 .map_init(Wavefront::default, |wf, tx| {
                     let x0 = tx * TILE;

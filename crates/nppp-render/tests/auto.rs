@@ -7,14 +7,13 @@
 
 mod common;
 use common::*;
+use nppp_render::RenderScene;
 use nppp_render::auto::{PilotOptions, decide};
 use nppp_render::estimator::{EstimatorMode, Estimators};
-use nppp_render::RenderScene;
 
 /// The scene `name` of data/scenes, `width` pixels wide (0: as it is).
 fn load(name: &str, width: u32) -> nppp_scene::Scene {
-    let mut scene =
-        nppp_scene::load_scene(&repo_root().join("data/scenes").join(name)).unwrap();
+    let mut scene = nppp_scene::load_scene(&repo_root().join("data/scenes").join(name)).unwrap();
     if width == 0 {
         return scene;
     }

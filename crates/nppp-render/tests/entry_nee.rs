@@ -57,6 +57,11 @@ fn first_vertex_nee_keeps_the_mean_and_cuts_the_noise() {
         // the default knot) is all that may separate them from PT's.
         let big = render(EstimatorMode::Neural, p, EntryNee::FirstVertex, 256, 2);
         let d = (sum(&big) - sum(&reference)).abs() / sum(&reference);
-        assert!(d < 0.02, "P={p}: mean {:.4} vs PT {:.4}", sum(&big), sum(&reference));
+        assert!(
+            d < 0.02,
+            "P={p}: mean {:.4} vs PT {:.4}",
+            sum(&big),
+            sum(&reference)
+        );
     }
 }
