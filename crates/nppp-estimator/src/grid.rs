@@ -321,7 +321,7 @@ impl QuantizedGrid {
             + pick(v_axis(v1, s), u[1]) * s * s
             + pick(u_axis(u2, s), u[2]) * s
             + pick(v_axis(v2, s), u[3]);
-        if self.bits == 4 && ch % 2 == 0 {
+        if self.bits == 4 && ch.is_multiple_of(2) {
             let nb = ch / 2;
             if let Some(codes) = self.data.get(node * nb..node * nb + nb) {
                 for (((o, &q), sc), off) in

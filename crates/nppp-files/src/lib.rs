@@ -468,7 +468,7 @@ mod tests {
 
     #[test]
     fn rates_are_formatted() {
-        assert_eq!(format_rate(229_100.5871, "samples"), "0.229 M samples/s");
+        assert_eq!(format_rate(229_100.587_1, "samples"), "0.229 M samples/s");
         assert_eq!(format_rate(4560.0, "rays"), "4.56 k rays/s");
         assert_eq!(format_rate(12.34, "steps"), "12.3 steps/s");
         assert_eq!(format_rate(0.5, "steps"), "0.50 steps/s");

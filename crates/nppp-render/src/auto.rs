@@ -206,6 +206,10 @@ fn candidates(surface: SurfaceKind, opts: &PilotOptions) -> Vec<Choice> {
         .collect()
 }
 
+/// One configuration's pilot: (estimator index and choice, or `None` for
+/// PT), its two halves, and its cost per sample.
+type PilotRender = (Option<(usize, Choice)>, Image, Image, f64);
+
 /// Runs the pilot on `rs` (its camera is swapped for the pilot's and put
 /// back) and returns the estimators configured as decided, `None` when all
 /// are off (the render is then plain path tracing).
@@ -254,7 +258,7 @@ pub fn decide(
     let (n_img, _, _) = run(rs, seeds[2]);
     let norm = blur(&n_img.pixels, n_img.width as usize, 2);
     // Every pilot's two halves and cost per sample: PT first.
-    let mut pilots: Vec<(Option<(usize, Choice)>, Image, Image, f64)> = Vec::new();
+    let mut pilots: Vec<PilotRender> = Vec::new();
     let (pa, ca, na) = run(rs, seeds[0]);
     let (pb, cb, nb) = run(rs, seeds[1]);
     pilots.push((None, pa, pb, (ca + cb) / (na + nb).max(1) as f64));

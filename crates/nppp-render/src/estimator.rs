@@ -161,8 +161,7 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
         }
     };
     let total: f32 = verts.iter().map(weight).sum();
-    // A NaN total fails `total > 0`.
-    if bsdf.is_delta() || !(total > 0.0) || !total.is_finite() {
+    if bsdf.is_delta() || !total.is_finite() || total <= 0.0 {
         return SkippedVertices { nee: None, last };
     }
     let mut target = u * total;

@@ -310,6 +310,7 @@ fn light_skipped_vertex(
 /// point moved back along its direction to the plane through the sphere's
 /// centre (the thesis' rule), so it cannot start behind a floor that cuts the
 /// sphere; the instance itself is skipped by the next intersection.
+#[allow(clippy::too_many_arguments)]
 fn follow_exit(
     scene: &RenderScene,
     s: &IntegratorSettings,
