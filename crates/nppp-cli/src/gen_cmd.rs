@@ -148,8 +148,8 @@ pub fn run(a: &GenArgs) -> Result<()> {
     let mut progress = |st: &GenStats| {
         bar.set_position(st.rays);
         bar.set_message(format!(
-            "{:.2} M exits/s, {:.1}% hit",
-            st.exits_per_second() / 1e6,
+            "{}, {:.1}% hit",
+            nppp_files::format_rate(st.exits_per_second(), "exits"),
             100.0 * st.hit_fraction()
         ));
     };
@@ -181,17 +181,19 @@ pub fn run(a: &GenArgs) -> Result<()> {
         "  mean exit throughput [{:.4} {:.4} {:.4}]",
         t[0], t[1], t[2]
     );
+    let rate = nppp_files::format_rate;
     println!(
-        "  time        {:.2}s: {:.3} M exits/s, {:.0} rays/s, {:.2} M BVH queries/s in the walks ({threads} threads)",
+        "  time        {:.2}s: {}, {}, {} in the walks ({threads} threads)",
         st.seconds,
-        st.exits_per_second() / 1e6,
-        st.rays_per_second(),
-        st.bvh_queries_per_second() / 1e6
+        rate(st.exits_per_second(), "exits"),
+        rate(st.rays_per_second(), "rays"),
+        rate(st.bvh_queries_per_second(), "BVH queries")
     );
-    if let Some(cpu) = gen_cpu {
+    // A run shorter than the clock's tick has no CPU rate to speak of.
+    if let Some(cpu) = gen_cpu.filter(|c| *c > 0.0) {
         println!(
-            "  CPU time    {cpu:.2}s: {:.3} M exits per CPU-second ({:.2} of {threads} threads busy on average)",
-            st.exits as f64 / cpu / 1e6,
+            "  CPU time    {cpu:.2}s: {} per CPU-second ({:.2} of {threads} threads busy on average)",
+            rate(st.exits as f64 / cpu, "exits").trim_end_matches("/s"),
             cpu / st.seconds.max(1e-9)
         );
     }

@@ -164,6 +164,7 @@ where
     builder
         .caption(title, ("sans-serif", 18))
         .margin(8)
+        .margin_right(24)
         .x_label_area_size(35)
         .y_label_area_size(65);
     macro_rules! draw_into {
@@ -172,6 +173,7 @@ where
             chart
                 .configure_mesh()
                 .x_desc("step")
+                .x_label_formatter(&|x| format!("{x:.0}"))
                 .y_desc(y_desc)
                 .draw()
                 .map_err(|e| err(&e))?;

@@ -398,7 +398,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(e) = &rs.estimators {
         let st = &stats.estimators;
         eprintln!(
-            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {} decoder fallbacks, {:.2} MiB shared; repairs: {} degenerate, {} inward, {} clamped",
+            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped",
             a.estimators,
             e.min_bounces,
             st.entries,
@@ -406,7 +406,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             st.ambiguous,
             st.over_max_bounces,
             st.decoder_fallbacks,
-            e.memory_bytes() as f64 / (1024.0 * 1024.0),
+            nppp_files::format_bytes(e.memory_bytes() as u64),
             st.repairs.degenerate,
             st.repairs.inward,
             st.repairs.clamped
