@@ -357,11 +357,18 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         let t = std::time::Instant::now();
         // A pilot of a few percent of the render: 4 spp per half for a
         // 64-spp render, down to 1 below 32 spp.
+        // The scene's P is the contract's "used only once the path has made
+        // at least P bounces": auto may choose a larger P, or none, never a
+        // smaller one (and never 0, see PilotOptions::min_p).
+        let defaults = nppp_render::auto::PilotOptions::default();
+        let min_p = settings.estimator_min_bounces.max(defaults.min_p);
         let pilot = nppp_render::auto::PilotOptions {
             max_bounces: settings.max_bounces,
             seed: settings.seed,
             spp: (settings.spp / 16).clamp(1, 4),
-            ..Default::default()
+            min_p,
+            max_p: defaults.max_p.max(min_p),
+            ..defaults
         };
         let (chosen, decision) = nppp_render::auto::decide(&mut rs, ests, &pilot);
         rs.estimators = chosen;
