@@ -895,7 +895,7 @@ fn log_row(
         None => ",,,,,,,,,".to_string(),
     };
     format!(
-        "{epoch:.4},{step},{elapsed_s:.2},{lr:e},{:.6},{:.6},{:.6},{:.6},{held},{seconds_per_step:.5}",
+        "{epoch:.4},{step},{elapsed_s:.2},{lr:.4e},{:.6},{:.6},{:.6},{:.6},{held},{seconds_per_step:.5}",
         train[0], train[1], train[2], train[3]
     )
 }
