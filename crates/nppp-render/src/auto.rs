@@ -331,24 +331,9 @@ pub fn decide(
     }
     // The decided configuration.
     ests.per_instance = base_instances;
-    let mut min_p = u32::MAX;
     for d in &decisions {
-        match d.choice {
-            Some(c) => {
-                ests.list[d.index].min_bounces = c.min_bounces;
-                ests.list[d.index].entry_nee = c.entry_nee;
-                min_p = min_p.min(c.min_bounces);
-            }
-            None => {
-                for e in ests.per_instance.iter_mut() {
-                    if *e == Some(d.index as u32) {
-                        *e = None;
-                    }
-                }
-            }
-        }
+        ests.configure_one(d.index, d.choice.map(|c| (c.min_bounces, c.entry_nee)));
     }
-    ests.min_bounces = min_p;
     let decision = Decision {
         pt,
         estimators: decisions,
