@@ -18,6 +18,9 @@ use nppp_geom::{BoundingSphere, SpherePair, Vec3};
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+
+mod common;
+use common::nppp;
 use std::time::Duration;
 
 fn corpus() -> PathBuf {
@@ -33,22 +36,7 @@ fn file(name: &str) -> PathBuf {
 
 /// A fresh, empty folder for one case.
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("nppp-bad-input-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn nppp<I, S>(args: I) -> Output
-where
-    I: IntoIterator<Item = S>,
-    S: AsRef<OsStr>,
-{
-    Command::new(env!("CARGO_BIN_EXE_nppp"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .output()
-        .expect("cannot run nppp")
+    common::scratch("bad-input", name)
 }
 
 fn text(o: &Output) -> String {

@@ -13,36 +13,11 @@ use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+mod common;
+use common::{SMALL_TRAIN_FLAGS, nppp, nppp_env, stderr};
+
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("nppp-train-files-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn nppp_env<I, S>(args: I, env: &[(&str, &str)]) -> Output
-where
-    I: IntoIterator<Item = S>,
-    S: AsRef<OsStr>,
-{
-    let mut c = Command::new(env!("CARGO_BIN_EXE_nppp"));
-    c.args(args).env("RUST_BACKTRACE", "0");
-    for (k, v) in env {
-        c.env(k, v);
-    }
-    c.output().expect("cannot run nppp")
-}
-
-fn nppp<I, S>(args: I) -> Output
-where
-    I: IntoIterator<Item = S>,
-    S: AsRef<OsStr>,
-{
-    nppp_env(args, &[])
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
+    common::scratch("train-files", name)
 }
 
 fn assert_ok(what: &str, o: &Output) {
@@ -114,40 +89,8 @@ fn write_data(path: &Path, rays: u32, k: u32) {
 /// Flags of a seconds-long training run (NdArray, tiny widths, 25-step epochs).
 fn small_train<'a>(data: &'a Path, out: &'a Path, epochs: &'a str) -> Vec<&'a OsStr> {
     let mut v: Vec<&OsStr> = vec!["train".as_ref(), "--data".as_ref(), data.as_os_str()];
-    v.extend(
-        [
-            "--backend",
-            "ndarray",
-            "--quiet",
-            "--minutes",
-            "0",
-            "--batch",
-            "16",
-            "--k",
-            "4",
-            "--mask-batch",
-            "64",
-            "--encoder-width",
-            "32",
-            "--decoder-width",
-            "32",
-            "--mask-width",
-            "32",
-            "--latent-dim",
-            "8",
-            "--eval-rays",
-            "16",
-            "--holdout-every",
-            "10",
-            "--steps-per-epoch",
-            "25",
-            "--seed",
-            "3",
-            "--epochs",
-        ]
-        .iter()
-        .map(OsStr::new),
-    );
+    v.extend(SMALL_TRAIN_FLAGS.iter().map(OsStr::new));
+    v.push("--epochs".as_ref());
     v.push(epochs.as_ref());
     v.push("--out".as_ref());
     v.push(out.as_os_str());

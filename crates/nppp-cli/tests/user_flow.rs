@@ -7,7 +7,10 @@
 
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+mod common;
+use common::{SMALL_TRAIN_FLAGS, nppp, stderr};
 
 fn file(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -16,30 +19,11 @@ fn file(name: &str) -> PathBuf {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("nppp-user-flow-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn nppp<I, S>(args: I) -> Output
-where
-    I: IntoIterator<Item = S>,
-    S: AsRef<OsStr>,
-{
-    Command::new(env!("CARGO_BIN_EXE_nppp"))
-        .args(args)
-        .env("RUST_BACKTRACE", "0")
-        .output()
-        .expect("cannot run nppp")
+    common::scratch("user-flow", name)
 }
 
 fn stdout(o: &Output) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
 fn assert_ok(what: &str, o: &Output) {
@@ -121,44 +105,11 @@ fn small_train<'a>(data: &'a Path, out: &'a Path) -> Vec<&'a OsStr> {
         "--out".as_ref(),
         out.as_os_str(),
     ];
+    v.extend(SMALL_TRAIN_FLAGS.iter().map(OsStr::new));
     v.extend(
-        [
-            "--backend",
-            "ndarray",
-            "--quiet",
-            "--minutes",
-            "0",
-            "--batch",
-            "16",
-            "--k",
-            "4",
-            "--mask-batch",
-            "64",
-            "--encoder-width",
-            "32",
-            "--decoder-width",
-            "32",
-            "--mask-width",
-            "32",
-            "--latent-dim",
-            "8",
-            "--eval-rays",
-            "16",
-            "--holdout-every",
-            "10",
-            "--steps-per-epoch",
-            "25",
-            "--seed",
-            "3",
-            "--steps",
-            "50",
-            "--log-every",
-            "10",
-            "--eval-every",
-            "20",
-        ]
-        .iter()
-        .map(OsStr::new),
+        ["--steps", "50", "--log-every", "10", "--eval-every", "20"]
+            .iter()
+            .map(OsStr::new),
     );
     v
 }

@@ -1,0 +1,75 @@
+//! Helpers shared by the binary's integration tests: running `nppp`, fresh
+//! scratch folders, and the flags of a seconds-long training run.
+
+// Each test binary uses its own subset.
+#![allow(dead_code)]
+
+use std::ffi::OsStr;
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+/// A fresh, empty folder named after the test file (`prefix`) and the case.
+pub fn scratch(prefix: &str, name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("nppp-{prefix}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Runs the `nppp` binary with `env` set (and no backtraces on stderr).
+pub fn nppp_env<I, S>(args: I, env: &[(&str, &str)]) -> Output
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let mut c = Command::new(env!("CARGO_BIN_EXE_nppp"));
+    c.args(args).env("RUST_BACKTRACE", "0");
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().expect("cannot run nppp")
+}
+
+pub fn nppp<I, S>(args: I) -> Output
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    nppp_env(args, &[])
+}
+
+pub fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// `nppp train` flags of a seconds-long run: NdArray, tiny widths, 25-step
+/// epochs, seed 3 (the data, output and length are the caller's).
+pub const SMALL_TRAIN_FLAGS: &[&str] = &[
+    "--backend",
+    "ndarray",
+    "--quiet",
+    "--minutes",
+    "0",
+    "--batch",
+    "16",
+    "--k",
+    "4",
+    "--mask-batch",
+    "64",
+    "--encoder-width",
+    "32",
+    "--decoder-width",
+    "32",
+    "--mask-width",
+    "32",
+    "--latent-dim",
+    "8",
+    "--eval-rays",
+    "16",
+    "--holdout-every",
+    "10",
+    "--steps-per-epoch",
+    "25",
+    "--seed",
+    "3",
+];
