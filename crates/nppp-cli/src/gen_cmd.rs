@@ -11,7 +11,8 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use nppp_estimator::WriterOptions;
 use nppp_estimator::dataset::MAX_K;
 use nppp_render::datagen::{
-    DEFAULT_MAX_INTERNAL_BOUNCES, GenConfig, GenObject, GenStats, generate, measure_bvh,
+    default_max_internal_bounces,
+    GenConfig, GenObject, GenStats, generate, measure_bvh,
 };
 use nppp_scene::procedural::Procedural;
 use nppp_scene::{Mesh, Scene, SceneError};
@@ -75,9 +76,10 @@ pub struct GenArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Paths still inside after this many scattering events are recorded as
-    /// zero-throughput exits.
-    #[arg(long, default_value_t = DEFAULT_MAX_INTERNAL_BOUNCES)]
-    pub max_internal_bounces: u32,
+    /// zero-throughput exits [default: 64; 2048 for translucent objects,
+    /// whose media scatter hundreds of times].
+    #[arg(long)]
+    pub max_internal_bounces: Option<u32>,
     /// Output data file (written to a temporary file, renamed when complete).
     #[arg(long)]
     pub out: PathBuf,
@@ -100,7 +102,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
         a.k
     );
     ensure!(
-        a.max_internal_bounces >= 1,
+        a.max_internal_bounces != Some(0),
         "--max-internal-bounces must be at least 1"
     );
     ensure!(
@@ -127,11 +129,14 @@ pub fn run(a: &GenArgs) -> Result<()> {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("--out {}: cannot create its folder", a.out.display()))?;
     }
+    let max_internal_bounces = a
+        .max_internal_bounces
+        .unwrap_or_else(|| default_max_internal_bounces(&obj.material));
     let cfg = GenConfig {
         rays: a.rays,
         k: a.k,
         seed: a.seed,
-        max_internal_bounces: a.max_internal_bounces,
+        max_internal_bounces,
     };
     let threads = rayon::current_num_threads();
     let s = obj.sphere;
@@ -141,7 +146,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
     );
     eprintln!(
         "gen: sphere centre [{} {} {}] radius {}; {} rays x k = {}, seed {}, cap {} bounces, {threads} threads",
-        s.center.x, s.center.y, s.center.z, s.radius, a.rays, a.k, a.seed, a.max_internal_bounces
+        s.center.x, s.center.y, s.center.z, s.radius, a.rays, a.k, a.seed, max_internal_bounces
     );
 
     let bar = progress_bar(a.rays, a.quiet);
@@ -216,7 +221,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
             "warning: {:.0}% of the exits stopped at the cap of {} internal bounces and count as \
              absorbed: raise --max-internal-bounces",
             100.0 * st.capped_exits as f64 / st.exits as f64,
-            a.max_internal_bounces
+            max_internal_bounces
         );
     }
     if st.repaired_exits > 0 {

@@ -12,7 +12,7 @@
 
 use crate::accel::Blas;
 use crate::object_walk::{ObjectTracer, Walk};
-use crate::scene_data::surface_of;
+use crate::scene_data::{medium_of, surface_of};
 use glam::Vec3;
 use nppp_estimator::dataset::MAX_K;
 use nppp_estimator::{
@@ -33,6 +33,18 @@ use thiserror::Error;
 /// of light trapped inside (a faceted glass ball traps ~0.5% of its exits
 /// past 64 bounces by total internal reflection; see the glass test).
 pub const DEFAULT_MAX_INTERNAL_BOUNCES: u32 = 64;
+
+/// The cap for translucent objects: a dense, high-albedo medium scatters
+/// hundreds of times before light leaves it.
+pub const DEFAULT_MAX_INTERNAL_BOUNCES_MEDIUM: u32 = 2048;
+
+/// `nppp gen`'s internal bounce cap for a material when none is given.
+pub fn default_max_internal_bounces(m: &Material) -> u32 {
+    match m {
+        Material::Translucent { .. } => DEFAULT_MAX_INTERNAL_BOUNCES_MEDIUM,
+        _ => DEFAULT_MAX_INTERNAL_BOUNCES,
+    }
+}
 
 /// Relative margin of the bounding sphere: no vertex may lie on the sphere
 /// itself, or input rays would start inside the surface.
@@ -140,6 +152,7 @@ impl GenObject {
         ObjectTracer {
             blas: &self.blas,
             surface: surface_of(&self.material),
+            medium: medium_of(&self.material),
             sphere: self.sphere,
             geo_normals: &self.geo_normals,
             shading_normals: self.shading_normals.as_deref(),
@@ -181,6 +194,16 @@ pub fn material_json(m: &Material) -> String {
             )
         }
         Material::Dielectric { ior } => format!(r#"{{"type": "dielectric", "ior": {ior}}}"#),
+        Material::Translucent {
+            ior,
+            sigma_s,
+            sigma_a,
+            g,
+        } => format!(
+            r#"{{"type": "translucent", "ior": {ior}, "sigma_s": {}, "sigma_a": {}, "g": {g}}}"#,
+            v(sigma_s),
+            v(sigma_a)
+        ),
         Material::Emitter { radiance } => {
             format!(r#"{{"type": "emitter", "radiance": {}}}"#, v(radiance))
         }

@@ -63,6 +63,8 @@ pub struct Estimator {
     /// first-vertex NEE finds its vertex.
     pub mesh: usize,
     pub surface: SurfaceKind,
+    /// The medium inside the object (translucent), in mesh units.
+    pub medium: Option<crate::medium::Medium>,
     /// P for this estimator: used once a path has made this many bounces.
     pub min_bounces: u32,
     /// Next-event estimation through this estimator.
@@ -79,6 +81,7 @@ impl Estimator {
         ObjectTracer {
             blas: &scene.accel.blas[self.mesh],
             surface: self.surface,
+            medium: self.medium,
             sphere: self.sphere,
             geo_normals: &scene.geo_normals[self.mesh],
             shading_normals: scene.shading_normals[self.mesh].as_deref(),
@@ -521,11 +524,12 @@ impl EntryBatch {
                 EstimatorModel::Oracle {
                     max_internal_bounces,
                 } => {
-                    let tracer = est.tracer(scene, *max_internal_bounces);
+                    let mut tracer = est.tracer(scene, *max_internal_bounces);
                     for &i in &self.rows {
                         let (path, entry) = &self.entries[i];
                         let path = &mut paths[*path];
                         let budget = max_bounces.saturating_sub(path.depth);
+                        tracer.max_internal_bounces = budget.clamp(1, *max_internal_bounces);
                         let walk = if est.entry_nee == EntryNee::Off {
                             tracer.walk(&entry.ray, &mut path.rng)
                         } else {
@@ -618,8 +622,11 @@ pub enum EstimatorLoadError {
     },
 }
 
-/// Default internal bounce cap of the oracle (matches `nppp gen`).
-pub const ORACLE_MAX_INTERNAL_BOUNCES: u32 = 64;
+/// Internal bounce cap of the oracle. Each walk also stops where the path
+/// runs out of bounces (M minus its depth: whatever happens later is cut by
+/// M anyway), so the oracle is the real object at every M up to this,
+/// dense media included, and never walks further than the path may go.
+pub const ORACLE_MAX_INTERNAL_BOUNCES: u32 = 1 << 16;
 
 /// Margin of the bounding sphere around a mesh (shared with `nppp gen`).
 pub const SPHERE_MARGIN: f32 = 0.01;
@@ -653,6 +660,7 @@ impl Estimators {
             }
             let mesh = &scene.meshes[inst.mesh];
             let surface = crate::scene_data::surface_of(&scene.materials[inst.material]);
+            let medium = crate::scene_data::medium_of(&scene.materials[inst.material]);
             let est = match mode {
                 EstimatorMode::Oracle => Estimator {
                     model: EstimatorModel::Oracle {
@@ -661,6 +669,7 @@ impl Estimators {
                     sphere: BoundingSphere::around(&mesh.positions, SPHERE_MARGIN),
                     mesh: inst.mesh,
                     surface,
+                    medium,
                     min_bounces,
                     entry_nee: EntryNee::Off,
                 },
@@ -723,6 +732,7 @@ impl Estimators {
                         sphere,
                         mesh: inst.mesh,
                         surface,
+                        medium,
                         min_bounces,
                         entry_nee: EntryNee::Off,
                     }

@@ -6,6 +6,11 @@
 //! roulette), then compact away the paths that ended. Each sample owns its
 //! random stream, so batching and thread count never change the image.
 //!
+//! Inside a translucent object a path also samples free flights through
+//! its medium (`scatter_in_medium`): a scattering event there is a bounce like
+//! one on a surface, and gets no next-event estimation (every light is
+//! behind the object's smooth boundary, which a shadow ray cannot cross).
+//!
 //! Bounce convention (docs/scene-format.md): `depth` counts scattering events so
 //! far; emission found after `depth` events contributes to the image when
 //! `depth <= max_bounces`, and NEE at a vertex contributes a path with
@@ -58,7 +63,14 @@ pub struct PathState {
     /// The instance whose estimator this ray has just left (ignored by the
     /// next intersection), or `NO_SKIP`.
     pub skip_instance: u32,
+    /// The instance whose medium the path is travelling through, or
+    /// `NO_MEDIUM`. Set when the path refracts into a translucent object,
+    /// cleared when it refracts out (media do not nest).
+    pub medium: u32,
 }
+
+/// `PathState::medium` of a path outside every medium.
+pub const NO_MEDIUM: u32 = u32::MAX;
 
 impl PathState {
     pub fn camera(slot: u32, rng: SampleRng, origin: Vec3, dir: Vec3) -> Self {
@@ -75,6 +87,7 @@ impl PathState {
             prev_point: origin,
             eta_scale: 1.0,
             skip_instance: crate::accel::NO_SKIP,
+            medium: NO_MEDIUM,
         }
     }
 }
@@ -171,12 +184,24 @@ impl Wavefront {
             self.answer_estimators(scene, settings);
             let mut w = 0;
             for r in 0..self.paths.len() {
+                let path = &mut self.paths[r];
                 let next = match self.meets[r] {
-                    Meet::Nothing => Next::Terminate,
-                    Meet::Surface(hit) => {
-                        shade(scene, settings, &mut self.paths[r], hit, &mut self.work)
-                    }
                     Meet::Estimator(_) => self.next[r],
+                    // In a medium, an event may happen before the surface.
+                    meet if path.medium != NO_MEDIUM => {
+                        let hit = match meet {
+                            Meet::Surface(h) => Some(h),
+                            _ => None,
+                        };
+                        let t_max = hit.map_or(f32::INFINITY, |h| h.t);
+                        match (scatter_in_medium(scene, settings, path, t_max), hit) {
+                            (Some(next), _) => next,
+                            (None, Some(hit)) => shade(scene, settings, path, hit, &mut self.work),
+                            (None, None) => Next::Terminate,
+                        }
+                    }
+                    Meet::Nothing => Next::Terminate,
+                    Meet::Surface(hit) => shade(scene, settings, path, hit, &mut self.work),
                 };
                 match next {
                     Next::Continue => {
@@ -350,6 +375,7 @@ fn follow_exit(
         }
     }
     path.skip_instance = instance;
+    path.medium = NO_MEDIUM;
     Next::Continue
 }
 
@@ -398,17 +424,22 @@ fn shade(
     let eps = scene.offset_at(p, hit.instance);
 
     // Next-event estimation (the random numbers are drawn even when unused so
-    // that the stream position never depends on scene content).
+    // that the stream position never depends on scene content). None inside
+    // a medium: a shadow ray from there would have to cross the medium's
+    // smooth boundary, so every light sample would be blocked.
     let u_light = path.rng.uniform();
     let u_light2 = path.rng.uniform2();
-    let vertex = SurfaceVertex {
-        p,
-        ng_side,
-        frame,
-        wo,
-        eps,
-    };
-    path.radiance += path.beta * sample_ld(scene, &bsdf, &vertex, u_light, u_light2, work);
+    let in_medium = path.medium != NO_MEDIUM;
+    if !in_medium {
+        let vertex = SurfaceVertex {
+            p,
+            ng_side,
+            frame,
+            wo,
+            eps,
+        };
+        path.radiance += path.beta * sample_ld(scene, &bsdf, &vertex, u_light, u_light2, work);
+    }
 
     // BSDF sampling.
     let u_lobe = path.rng.uniform();
@@ -422,13 +453,64 @@ fn shade(
     }
     path.beta *= bs.weight;
     path.prev_pdf = bs.pdf;
-    path.prev_delta = bs.delta;
+    // Without a light sample here, an emitter hit next counts fully.
+    path.prev_delta = bs.delta || in_medium;
     path.prev_point = p;
     path.depth += 1;
     path.origin = offset_point(p, ng, wi, eps);
     path.dir = wi;
     path.skip_instance = crate::accel::NO_SKIP;
+    if wi.dot(ng) * wo_world.dot(ng) < 0.0 {
+        // Refracted: into the object's medium (if it has one) from its front
+        // side, out of it from its back side.
+        path.medium = match scene.media[hit.instance as usize] {
+            Some(_) if wo_world.dot(ng) > 0.0 => hit.instance,
+            _ => NO_MEDIUM,
+        };
+    }
+    russian_roulette(path, u_rr)
+}
 
+/// A free flight through the medium the path is in, up to the surface at
+/// distance `t_max` (infinite: none). `Some` when an event ended the flight
+/// in the medium (the path scattered, or ended there); `None` when the path
+/// reached the surface, its throughput weighted by the transmittance.
+fn scatter_in_medium(
+    scene: &RenderScene,
+    s: &IntegratorSettings,
+    path: &mut PathState,
+    t_max: f32,
+) -> Option<Next> {
+    let Some(medium) = scene.media[path.medium as usize] else {
+        path.medium = NO_MEDIUM;
+        return None;
+    };
+    let flight = medium.sample_free_flight(t_max, path.rng.uniform(), path.rng.uniform());
+    path.beta *= flight.weight;
+    if !flight.scattered {
+        return None;
+    }
+    if path.depth >= s.max_bounces {
+        return Some(Next::Terminate);
+    }
+    let p = path.origin + path.dir * flight.t;
+    let (wi, pdf) = medium.sample_phase(path.dir, path.rng.uniform2());
+    let u_rr = path.rng.uniform();
+    path.prev_pdf = pdf;
+    // No light sample in a medium: an emitter hit next counts fully.
+    path.prev_delta = true;
+    path.prev_point = p;
+    path.depth += 1;
+    path.origin = p;
+    path.dir = wi;
+    path.skip_instance = crate::accel::NO_SKIP;
+    Some(russian_roulette(path, u_rr))
+}
+
+/// Russian roulette after a scattering event (from `RR_START_DEPTH` on),
+/// on the throughput with the refractions' radiance scaling undone.
+#[inline]
+fn russian_roulette(path: &mut PathState, u_rr: f32) -> Next {
     if path.depth >= RR_START_DEPTH {
         let mut q = (1.0 - (path.beta * path.eta_scale).max_element()).max(0.0);
         if path.depth >= RR_CAP_DEPTH {

@@ -1,6 +1,7 @@
 //! The path tracer: two-level BVH, materials, lights, camera, the wavefront
 //! integrator, estimator integration (queries, batched answers, next-event
-//! estimation through an estimator, the `auto` pilot), object walks
+//! estimation through an estimator, the `auto` pilot), homogeneous media
+//! inside translucent objects, object walks
 //! (training data and the oracle), error metrics, and image output.
 
 pub mod accel;
@@ -13,6 +14,7 @@ pub mod estimator;
 pub mod image_io;
 pub mod integrator;
 pub mod lights;
+pub mod medium;
 pub mod metrics;
 pub mod object_walk;
 pub mod render;

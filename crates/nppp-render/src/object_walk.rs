@@ -8,6 +8,7 @@
 use crate::accel::Blas;
 use crate::bsdf::Bsdf;
 use crate::integrator::{offset_ray_origin, sample_scatter, shading_frame};
+use crate::medium::Medium;
 use crate::scene_data::{OFFSET_REL, SurfaceKind};
 use glam::Vec3;
 use nppp_estimator::Exit;
@@ -19,6 +20,10 @@ use nppp_geom::{BoundingSphere, Ray, SampleRng};
 pub struct ObjectTracer<'a> {
     pub blas: &'a Blas,
     pub surface: SurfaceKind,
+    /// The medium inside the object (translucent), in mesh units: a walk
+    /// that refracts in samples free flights and phase functions until it
+    /// refracts out.
+    pub medium: Option<Medium>,
     pub sphere: BoundingSphere,
     pub geo_normals: &'a [Vec3],
     pub shading_normals: Option<&'a [[Vec3; 3]]>,
@@ -44,7 +49,9 @@ pub struct WalkVertex {
     /// Solid-angle pdf of the direction sampled here (0 if sampling failed):
     /// for the last vertex, the MIS weight of an emitter the exit ray hits.
     pub pdf: f32,
-    /// Whether that direction came from a delta lobe.
+    /// Whether that direction came from a delta lobe, or the vertex is a
+    /// scattering event in a medium (no next-event estimation there: the
+    /// light is behind the object's smooth boundary).
     pub delta: bool,
 }
 
@@ -120,8 +127,40 @@ impl ObjectTracer<'_> {
         let mut radiance = Vec3::ZERO;
         let mut bounces = 0u32;
         let mut first = true;
+        // Whether the path is inside the object's medium.
+        let mut in_medium = false;
         loop {
-            let Some(h) = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY) else {
+            let hit = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY);
+            if let (true, Some(medium)) = (in_medium, &self.medium) {
+                let t_max = hit.map_or(f32::INFINITY, |h| h.t);
+                let flight = medium.sample_free_flight(t_max, rng.uniform(), rng.uniform());
+                beta *= flight.weight;
+                if flight.scattered {
+                    let p = o + d * flight.t;
+                    if bounces >= self.max_internal_bounces {
+                        return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
+                    }
+                    let (wi, pdf) = medium.sample_phase(d, rng.uniform2());
+                    record(WalkVertex {
+                        point: p,
+                        ng: -d,
+                        ns: -d,
+                        wo: -d,
+                        beta,
+                        index: bounces,
+                        pdf,
+                        delta: true,
+                    });
+                    bounces += 1;
+                    o = p;
+                    d = wi;
+                    if beta == Vec3::ZERO {
+                        return Walk::Exit(self.leave(o, d, beta, radiance, bounces));
+                    }
+                    continue;
+                }
+            }
+            let Some(h) = hit else {
                 if first {
                     return Walk::Miss;
                 }
@@ -163,6 +202,10 @@ impl ObjectTracer<'_> {
                 return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
             };
             beta *= bs.weight;
+            if wi.dot(ng) * wo.dot(ng) < 0.0 {
+                // Refracted: into the medium from the front (outside), out of it from the back.
+                in_medium = wo.dot(ng) > 0.0;
+            }
             let eps = (p.abs().max_element().max(r) * OFFSET_REL).max(f32::MIN_POSITIVE);
             o = offset_ray_origin(p, ng, wi, eps);
             d = wi;

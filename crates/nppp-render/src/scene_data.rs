@@ -5,6 +5,7 @@ use crate::accel::{Accel, SceneHit};
 use crate::bsdf::Bsdf;
 use crate::camera::PinholeCamera;
 use crate::lights::{LightTriangle, Lights};
+use crate::medium::Medium;
 use glam::Vec3;
 use nppp_scene::{Material, Scene};
 
@@ -45,6 +46,9 @@ pub struct RenderScene {
     /// small object through its neighbours (a 1e7 floor did, with the old
     /// scene-wide floor: light leaked through a tube's walls).
     pub offset_floor: Vec<f32>,
+    /// Per instance: the medium inside it (translucent objects), in world
+    /// units (the mesh-space coefficients divided by the instance's scale).
+    pub media: Vec<Option<Medium>>,
     /// Estimators attached to instances; `None` runs no estimator code at
     /// all. Only a scene built by [`RenderScene::for_estimators`] can use
     /// them ([`crate::render`] checks).
@@ -65,8 +69,21 @@ pub fn surface_of(m: &Material) -> SurfaceKind {
             reflectance,
             alpha: roughness,
         }),
-        Material::Dielectric { ior } => SurfaceKind::Scatter(Bsdf::Dielectric { ior }),
+        Material::Dielectric { ior } | Material::Translucent { ior, .. } => {
+            SurfaceKind::Scatter(Bsdf::Dielectric { ior })
+        }
         Material::Emitter { radiance } => SurfaceKind::Emitter { radiance },
+    }
+}
+
+/// The medium inside a material's boundary (translucent objects), in the
+/// mesh's own units.
+pub fn medium_of(m: &Material) -> Option<Medium> {
+    match *m {
+        Material::Translucent {
+            sigma_s, sigma_a, g, ..
+        } => Some(Medium::new(sigma_s, sigma_a, g)),
+        _ => None,
     }
 }
 
@@ -167,6 +184,11 @@ impl RenderScene {
             accel,
             plain_accel,
             offset_floor,
+            media: scene
+                .instances
+                .iter()
+                .map(|i| medium_of(&scene.materials[i.material]).map(|m| m.scaled(i.transform.scale)))
+                .collect(),
             estimators: None,
         }
     }

@@ -78,8 +78,9 @@ pub fn mesh_content_hash(mesh: &Mesh) -> u64 {
 }
 
 /// Hash of a material: a one-byte type tag (diffuse 0, conductor 1,
-/// dielectric 2, emitter 3), then its parameters as f32 bits in declaration
-/// order (conductor: reflectance r, g, b, then roughness).
+/// dielectric 2, emitter 3, translucent 4), then its parameters as f32 bits
+/// in declaration order (conductor: reflectance r, g, b, then roughness;
+/// translucent: ior, sigma_s, sigma_a, g).
 pub fn material_content_hash(m: &Material) -> u64 {
     let mut h = Fnv1a::new();
     match *m {
@@ -102,6 +103,18 @@ pub fn material_content_hash(m: &Material) -> u64 {
         Material::Emitter { radiance } => {
             h.bytes(&[3]);
             h.vec3(radiance);
+        }
+        Material::Translucent {
+            ior,
+            sigma_s,
+            sigma_a,
+            g,
+        } => {
+            h.bytes(&[4]);
+            h.f32(ior);
+            h.vec3(sigma_s);
+            h.vec3(sigma_a);
+            h.f32(g);
         }
     }
     h.0

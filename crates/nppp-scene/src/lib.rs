@@ -5,6 +5,8 @@
 
 mod types;
 pub use types::*;
+mod closed;
+pub use closed::{OpenEdge, open_edge};
 mod error;
 pub mod hash;
 mod json;

@@ -293,6 +293,7 @@ impl Cx<'_> {
             .map(|(name, v)| self.mesh(v, &join_key(&mesh_path, name)))
             .collect::<Res<Vec<Mesh>>>()?;
         self.check_world_extent(&camera, &meshes, &mesh_names, &instances)?;
+        self.check_translucent_closed(&meshes, &mesh_names, &materials, &material_names, &instances)?;
         // Validated above: every "obj" value is a non-empty string.
         let obj_files = mesh_values
             .iter()
@@ -315,6 +316,36 @@ impl Cx<'_> {
             instances,
             render,
         })
+    }
+
+    /// A translucent material's medium is "inside" its mesh: the mesh must
+    /// bound a volume. The error names the mesh, the material and one open edge.
+    fn check_translucent_closed(
+        &self,
+        meshes: &[Mesh],
+        mesh_names: &[String],
+        materials: &[Material],
+        material_names: &[String],
+        instances: &[Instance],
+    ) -> Res<()> {
+        let mut checked = vec![false; meshes.len()];
+        for inst in instances {
+            if !matches!(materials[inst.material], Material::Translucent { .. }) || checked[inst.mesh] {
+                continue;
+            }
+            checked[inst.mesh] = true;
+            if let Some(edge) = crate::open_edge(&meshes[inst.mesh]) {
+                return Err(self.invalid(
+                    &join_key("meshes", &mesh_names[inst.mesh]),
+                    format!(
+                        "is used with the translucent material \"{}\" but is not a closed mesh: {edge}; \
+                         a medium needs a watertight, consistently oriented boundary",
+                        material_names[inst.material]
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Every instance's vertices, transformed to world space (in f64, so an
@@ -468,18 +499,11 @@ impl Cx<'_> {
             "conductor" => &["type", "reflectance", "roughness"],
             "dielectric" => &["type", "ior"],
             "emitter" => &["type", "radiance"],
-            "translucent" => {
-                return Err(self.invalid(
-                    &type_path,
-                    "the scene format's \"translucent\" material (a medium inside a dielectric) \
-                     is not implemented in this version of nppp"
-                        .into(),
-                ));
-            }
+            "translucent" => &["type", "ior", "sigma_s", "sigma_a", "g"],
             other => {
                 return Err(self.invalid(
                     &type_path,
-                    format!("unknown material type \"{other}\" (known: diffuse, conductor, dielectric, emitter)"),
+                    format!("unknown material type \"{other}\" (known: diffuse, conductor, dielectric, translucent, emitter)"),
                 ));
             }
         };
@@ -496,6 +520,17 @@ impl Cx<'_> {
                 }
             }
             Ok(c)
+        };
+        let ior = || -> Res<f32> {
+            let (iv, ip) = f.req(self, "ior")?;
+            let ior = self.float(iv, &ip)?;
+            if ior <= 0.0 {
+                return Err(self.invalid(
+                    &ip,
+                    format!("index of refraction must be positive, found {ior}"),
+                ));
+            }
+            Ok(ior)
         };
         Ok(match ty {
             "diffuse" => Material::Diffuse {
@@ -516,16 +551,42 @@ impl Cx<'_> {
                     roughness,
                 }
             }
-            "dielectric" => {
-                let (iv, ip) = f.req(self, "ior")?;
-                let ior = self.float(iv, &ip)?;
-                if ior <= 0.0 {
-                    return Err(self.invalid(
-                        &ip,
-                        format!("index of refraction must be positive, found {ior}"),
-                    ));
+            "dielectric" => Material::Dielectric { ior: ior()? },
+            "translucent" => {
+                let coefficient = |key: &str| -> Res<Vec3> {
+                    let (cv, cp) = f.req(self, key)?;
+                    let c = self.vec3(cv, &cp)?;
+                    for (i, x) in c.to_array().into_iter().enumerate() {
+                        if !(x >= 0.0 && x.is_finite()) {
+                            return Err(self.invalid(
+                                &join_index(&cp, i),
+                                format!("{x}: a medium coefficient (per unit length) must be finite and >= 0"),
+                            ));
+                        }
+                    }
+                    Ok(c)
+                };
+                let sigma_s = coefficient("sigma_s")?;
+                let sigma_a = coefficient("sigma_a")?;
+                let g = match f.get("g") {
+                    Some((gv, gp)) => {
+                        let g = self.float(gv, &gp)?;
+                        if !(g.abs() < 1.0) {
+                            return Err(self.invalid(
+                                &gp,
+                                format!("{g} is outside (-1, 1): the Henyey-Greenstein mean cosine g must satisfy |g| < 1"),
+                            ));
+                        }
+                        g
+                    }
+                    None => 0.0,
+                };
+                Material::Translucent {
+                    ior: ior()?,
+                    sigma_s,
+                    sigma_a,
+                    g,
                 }
-                Material::Dielectric { ior }
             }
             _ => {
                 let (rv, rp) = f.req(self, "radiance")?;

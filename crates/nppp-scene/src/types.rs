@@ -75,6 +75,17 @@ pub enum Material {
     Conductor { reflectance: Vec3, roughness: f32 },
     /// Smooth glass; `ior` inside (the back side of the mesh), 1.0 outside.
     Dielectric { ior: f32 },
+    /// A smooth dielectric boundary (as `Dielectric`) around a homogeneous
+    /// medium. `sigma_s`, `sigma_a` are per unit length in the mesh's own
+    /// coordinates (an instance scaled by s has world coefficients sigma / s,
+    /// so one estimator serves every instance); `g` is the Henyey-Greenstein
+    /// mean cosine. The mesh must be closed.
+    Translucent {
+        ior: f32,
+        sigma_s: Vec3,
+        sigma_a: Vec3,
+        g: f32,
+    },
     /// One-sided area light emitting from the front side, reflecting nothing.
     Emitter { radiance: Vec3 },
 }

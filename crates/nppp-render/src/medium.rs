@@ -1,0 +1,238 @@
+//! Homogeneous participating media (the inside of a `translucent` object):
+//! free-flight distance sampling and the Henyey-Greenstein phase function.
+//!
+//! Distances are sampled with spectral MIS over the three channels (the
+//! one-sample model of Miller, Georgiev and Jarosz 2019, "A null-scattering
+//! path integral formulation of light transport", as pbrt-v4 and Mitsuba's
+//! `volpath` with chromatic media do): pick a channel uniformly, sample its
+//! exponential, and divide by the average of the three channels' pdfs. A
+//! chromatic medium is then unbiased in every channel, and no channel's
+//! weight can blow up the way it does when only the sampled channel's pdf
+//! is used.
+
+use glam::{Vec2, Vec3};
+use nppp_geom::Frame;
+use std::f32::consts::PI;
+
+/// A homogeneous medium: coefficients per unit length in the frame it is
+/// used in (mesh space in object walks, world space in the renderer).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Medium {
+    pub sigma_s: Vec3,
+    /// Extinction, sigma_s + sigma_a.
+    pub sigma_t: Vec3,
+    /// Henyey-Greenstein mean cosine, |g| < 1.
+    pub g: f32,
+}
+
+/// What a free-flight sample decided for a segment of length `t_max`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FreeFlight {
+    /// Distance along the ray: of the scattering event, or `t_max`.
+    pub t: f32,
+    /// Whether a real scattering event happens at `t` (before `t_max`).
+    pub scattered: bool,
+    /// What the path's throughput is multiplied by: sigma_s Tr(t) / pdf for
+    /// a scattering event, Tr(t_max) / P(no event) otherwise.
+    pub weight: Vec3,
+}
+
+impl Medium {
+    pub fn new(sigma_s: Vec3, sigma_a: Vec3, g: f32) -> Self {
+        Self {
+            sigma_s,
+            sigma_t: sigma_s + sigma_a,
+            g,
+        }
+    }
+
+    /// The medium of an object scaled by `scale` (uniform), in the scaled
+    /// frame: lengths grow by `scale`, so coefficients shrink by it.
+    pub fn scaled(&self, scale: f32) -> Self {
+        Self {
+            sigma_s: self.sigma_s / scale,
+            sigma_t: self.sigma_t / scale,
+            g: self.g,
+        }
+    }
+
+    /// Transmittance over a distance `t` (infinite: 0, or 1 in a channel
+    /// without extinction).
+    #[inline]
+    pub fn transmittance(&self, t: f32) -> Vec3 {
+        let tr = |s: f32| if s > 0.0 { (-s * t).exp() } else { 1.0 };
+        Vec3::new(tr(self.sigma_t.x), tr(self.sigma_t.y), tr(self.sigma_t.z))
+    }
+
+    /// Samples where along a segment of length `t_max` (may be infinite)
+    /// the next event happens, with `u_channel` choosing the channel and
+    /// `u_dist` the distance.
+    #[inline]
+    pub fn sample_free_flight(&self, t_max: f32, u_channel: f32, u_dist: f32) -> FreeFlight {
+        let channel = ((u_channel * 3.0) as usize).min(2);
+        let st = self.sigma_t[channel];
+        let t = if st > 0.0 {
+            -(1.0 - u_dist).ln() / st
+        } else {
+            f32::INFINITY
+        };
+        if t < t_max {
+            let tr = self.transmittance(t);
+            let pdf = (self.sigma_t * tr).element_sum() / 3.0;
+            let weight = if pdf > 0.0 {
+                self.sigma_s * tr / pdf
+            } else {
+                Vec3::ZERO
+            };
+            FreeFlight {
+                t,
+                scattered: true,
+                weight,
+            }
+        } else {
+            let tr = self.transmittance(t_max);
+            let pdf = tr.element_sum() / 3.0;
+            let weight = if pdf > 0.0 { tr / pdf } else { Vec3::ZERO };
+            FreeFlight {
+                t: t_max,
+                scattered: false,
+                weight,
+            }
+        }
+    }
+
+    /// Samples the direction a path scattered at a medium point continues
+    /// in, given the direction `d` it arrived travelling in. Returns the new
+    /// direction and its solid-angle pdf; the weight (phase / pdf) is 1.
+    #[inline]
+    pub fn sample_phase(&self, d: Vec3, u: Vec2) -> (Vec3, f32) {
+        let g = self.g;
+        let cos = if g.abs() < 1e-3 {
+            1.0 - 2.0 * u.x
+        } else {
+            let s = (1.0 - g * g) / (1.0 - g + 2.0 * g * u.x);
+            ((1.0 + g * g - s * s) / (2.0 * g)).clamp(-1.0, 1.0)
+        };
+        let sin = (1.0 - cos * cos).max(0.0).sqrt();
+        let phi = 2.0 * PI * u.y;
+        let local = Vec3::new(sin * phi.cos(), sin * phi.sin(), cos);
+        let wi = Frame::from_normal(d).to_world(local).normalize();
+        (wi, hg_phase(cos, g))
+    }
+}
+
+/// The Henyey-Greenstein phase function (per steradian) at the cosine
+/// between the incoming and the outgoing propagation directions; g > 0
+/// scatters forward.
+#[inline]
+pub fn hg_phase(cos: f32, g: f32) -> f32 {
+    let denom = 1.0 + g * g - 2.0 * g * cos;
+    (1.0 - g * g) / (4.0 * PI * denom * denom.max(0.0).sqrt())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nppp_geom::SampleRng;
+    use proptest::prelude::*;
+
+    #[test]
+    fn free_flight_weights_average_to_the_transmittance_and_scattering() {
+        // E[weight over the "passed" outcomes] = Tr(t_max) and
+        // E[weight * f(t) over scatter events] = int sigma_s Tr(t) f(t) dt.
+        let m = Medium::new(Vec3::new(0.5, 2.0, 4.0), Vec3::new(0.5, 0.0, 1.0), 0.0);
+        let t_max = 0.7;
+        let mut rng = SampleRng::new(3, 0, 0);
+        let n = 400_000;
+        let (mut passed, mut scattered) = (Vec3::ZERO, Vec3::ZERO);
+        for _ in 0..n {
+            let f = m.sample_free_flight(t_max, rng.uniform(), rng.uniform());
+            if f.scattered {
+                assert!(f.t < t_max);
+                scattered += f.weight;
+            } else {
+                passed += f.weight;
+            }
+        }
+        let passed = passed / n as f32;
+        let scattered = scattered / n as f32;
+        let tr = m.transmittance(t_max);
+        // int_0^t_max sigma_s exp(-sigma_t t) dt = sigma_s / sigma_t (1 - Tr).
+        let expect_s = m.sigma_s / m.sigma_t * (Vec3::ONE - tr);
+        for c in 0..3 {
+            assert!((passed[c] - tr[c]).abs() < 0.01, "passed {passed} vs {tr}");
+            assert!((scattered[c] - expect_s[c]).abs() < 0.01, "{scattered} vs {expect_s}");
+        }
+    }
+
+    #[test]
+    fn a_medium_without_extinction_never_scatters() {
+        let m = Medium::new(Vec3::ZERO, Vec3::ZERO, 0.3);
+        let f = m.sample_free_flight(f32::INFINITY, 0.5, 0.999);
+        assert!(!f.scattered);
+        assert_eq!(f.weight, Vec3::ONE);
+    }
+
+    #[test]
+    fn an_escaping_ray_in_a_medium_has_zero_weight_where_it_must_scatter() {
+        let m = Medium::new(Vec3::ONE, Vec3::ZERO, 0.0);
+        let f = m.sample_free_flight(f32::INFINITY, 0.5, 0.5);
+        assert!(f.scattered && f.weight.is_finite());
+    }
+
+    #[test]
+    fn hg_mean_cosine_is_g() {
+        for g in [-0.7f32, -0.2, 0.0, 0.5, 0.9] {
+            let m = Medium::new(Vec3::ONE, Vec3::ZERO, g);
+            let d = Vec3::new(0.3, -0.5, 0.8).normalize();
+            let mut rng = SampleRng::new(9, 1, 0);
+            let n = 200_000;
+            let mean: f64 = (0..n)
+                .map(|_| m.sample_phase(d, rng.uniform2()).0.dot(d) as f64)
+                .sum::<f64>()
+                / n as f64;
+            assert!((mean - g as f64).abs() < 0.01, "g {g}: mean cosine {mean}");
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn hg_is_normalized(g in -0.95f32..0.95) {
+            // Integral over the sphere, midpoint rule in cos.
+            let n = 20_000;
+            let sum: f64 = (0..n)
+                .map(|i| {
+                    let cos = -1.0 + (i as f32 + 0.5) * 2.0 / n as f32;
+                    hg_phase(cos, g) as f64
+                })
+                .sum::<f64>() * 2.0 / n as f64 * 2.0 * std::f64::consts::PI;
+            prop_assert!((sum - 1.0).abs() < 2e-3, "g {}: {}", g, sum);
+        }
+
+        #[test]
+        fn sampled_directions_are_unit_with_the_phase_as_pdf(
+            g in -0.95f32..0.95, ux in 0.0f32..1.0, uy in 0.0f32..1.0,
+            dx in -1.0f32..1.0, dy in -1.0f32..1.0, dz in -1.0f32..1.0,
+        ) {
+            let d = Vec3::new(dx, dy, dz);
+            prop_assume!(d.length() > 0.1);
+            let d = d.normalize();
+            let (wi, pdf) = Medium::new(Vec3::ONE, Vec3::ZERO, g).sample_phase(d, Vec2::new(ux, uy));
+            prop_assert!((wi.length() - 1.0).abs() < 1e-4);
+            let expect = hg_phase(wi.dot(d).clamp(-1.0, 1.0), g);
+            prop_assert!(pdf.is_finite() && pdf > 0.0);
+            prop_assert!((pdf - expect).abs() <= 2e-2 * expect.max(1e-3), "{} vs {}", pdf, expect);
+        }
+
+        #[test]
+        fn free_flight_weights_are_finite(
+            s in prop::array::uniform3(0.0f32..1e4), a in prop::array::uniform3(0.0f32..1e4),
+            t_max in 1e-6f32..1e3, uc in 0.0f32..1.0, ud in 0.0f32..1.0,
+        ) {
+            let m = Medium::new(Vec3::from(s), Vec3::from(a), 0.0);
+            let f = m.sample_free_flight(t_max, uc, ud);
+            prop_assert!(f.weight.is_finite() && f.weight.min_element() >= 0.0);
+            prop_assert!(f.t <= t_max);
+        }
+    }
+}
