@@ -9,6 +9,8 @@
 #                    nppp and Mitsuba (VARIANT, default llvm_ad_rgb, rr_depth 5 and 3) run
 #                    alternately; render time alone, medians and ratios
 #   make mitsuba-conformance [VARIANT=...]     camera convention check against shared/conformance
+#   make mitsuba-media [MEDIA_SCENES=...] [SPP=1024] translucent scenes: nppp (two seeds) against
+#                    Mitsuba volpath; means within 1% and relMSE beside nppp's own noise
 #   make mitsuba-venv                          just create .venv-mitsuba
 #   make mitsuba-llvm                          install Debian's libllvm19 (for VARIANT=llvm_ad_rgb)
 # SPP, MAX_BOUNCES and SEED default to the scene's render values (unless the including
@@ -29,7 +31,7 @@ MITSUBA_SUDO    := $(if $(filter 0,$(shell id -u)),,sudo)
 MITSUBA_LLVM_PATH_ENV = DRJIT_LIBLLVM_PATH="$${DRJIT_LIBLLVM_PATH:-$$(ls /usr/lib/*/libLLVM-19.so /usr/lib/*/libLLVM.so.19* 2>/dev/null | head -n1)}"
 MITSUBA_LLVM_ENV = $(if $(filter llvm%,$(MITSUBA_VARIANT)),$(MITSUBA_LLVM_PATH_ENV))
 
-.PHONY: mitsuba-venv mitsuba-llvm mitsuba-ref mitsuba-compare mitsuba-conformance mitsuba-speed
+.PHONY: mitsuba-venv mitsuba-llvm mitsuba-ref mitsuba-compare mitsuba-conformance mitsuba-speed mitsuba-media
 
 mitsuba-venv: $(MITSUBA_STAMP)
 
@@ -54,6 +56,11 @@ mitsuba-ref: $(MITSUBA_STAMP) $(if $(filter llvm%,$(MITSUBA_VARIANT)),mitsuba-ll
 	  --variant $(MITSUBA_VARIANT) $(if $(SPP),--spp $(SPP)) $(if $(MAX_BOUNCES),--max-bounces $(MAX_BOUNCES)) \
 	  $(if $(SEED),--seed $(SEED)) $(if $(THREADS),--threads $(THREADS)) $(if $(filter-out 0,$(TIME)),--time) \
 	  $(foreach m,$(MESH_OBJ),--mesh-obj "$(m)")
+
+MEDIA_SCENES ?= $(wildcard data/scenes/translucent/*.json)
+mitsuba-media: $(MITSUBA_STAMP) build
+	$(MITSUBA_PY) $(MITSUBA_DIR)/check_media.py $(NPPP) $(MEDIA_SCENES) --spp $(or $(MEDIA_SPP),1024) \
+	  --variant $(MITSUBA_VARIANT) $(foreach m,$(MESH_OBJ),--mesh-obj "$(m)")
 
 mitsuba-compare: $(MITSUBA_STAMP)
 	@test -n "$(A)" -a -n "$(B)" || { echo "usage: make mitsuba-compare A=test.exr B=reference.exr [TOL_MEAN=0.02]"; exit 2; }

@@ -80,11 +80,21 @@ def bsdf_dict(mat):
                      "sample_visible": True, "material": "none",
                      "specular_reflectance": rgb(mat.reflectance)}
         return {"type": "twosided", "bsdf": inner}
-    if mat.type == "dielectric":
+    if mat.type in ("dielectric", "translucent"):
         return {"type": "dielectric", "int_ior": float(mat.ior), "ext_ior": 1.0}
     if mat.type == "emitter":
         return {"type": "diffuse", "reflectance": rgb([0.0, 0.0, 0.0])}
     raise SceneError(f"materials.{mat.name}.type: no Mitsuba mapping for {mat.type}")
+
+
+def medium_dict(mat, scale):
+    """The homogeneous medium inside a translucent instance, in world units: the
+    contract's coefficients are per unit length of the mesh's own coordinates."""
+    sigma_t = (mat.sigma_s + mat.sigma_a) / scale
+    albedo = np.divide(mat.sigma_s, mat.sigma_s + mat.sigma_a,
+                       out=np.zeros(3), where=(mat.sigma_s + mat.sigma_a) > 0)
+    return {"type": "homogeneous", "sigma_t": rgb(sigma_t), "albedo": rgb(albedo),
+            "phase": {"type": "hg", "g": float(mat.g)}}
 
 
 def make_mesh(mi, inst):
@@ -94,6 +104,8 @@ def make_mesh(mi, inst):
     props["bsdf"] = mi.load_dict(bsdf_dict(mat))
     if mat.type == "emitter":
         props["emitter"] = mi.load_dict({"type": "area", "radiance": rgb(mat.radiance)})
+    if mat.type == "translucent":
+        props["interior"] = mi.load_dict(medium_dict(mat, inst.scale))
     normals = inst.normals if mat.type != "emitter" else None
     nv, nf = len(inst.positions), len(inst.faces)
     mesh = mi.Mesh(f"instance{inst.index}_{inst.mesh_name}", nv, nf, props=props,
@@ -120,7 +132,9 @@ def scene_dict(mi, scene, spp, max_bounces, seed, rr_depth=None):
                  for i in scene.instances] + [dist])
     d = {
         "type": "scene",
-        "integrator": {"type": "path", "max_depth": int(max_bounces) + 1, "hide_emitters": False,
+        # volpath only where a medium needs it: on surfaces it is the same estimator.
+        "integrator": {"type": "volpath" if any(i.material.type == "translucent" for i in scene.instances)
+                       else "path", "max_depth": int(max_bounces) + 1, "hide_emitters": False,
                        **({} if rr_depth is None else {"rr_depth": int(rr_depth)})},
         "sensor": {
             "type": "perspective",

@@ -27,6 +27,7 @@ MATERIAL_KEYS = {
     "diffuse": ({"type", "albedo"}, {"type", "albedo"}),
     "conductor": ({"type", "reflectance", "roughness"}, {"type", "reflectance", "roughness"}),
     "dielectric": ({"type", "ior"}, {"type", "ior"}),
+    "translucent": ({"type", "ior", "sigma_s", "sigma_a", "g"}, {"type", "ior", "sigma_s", "sigma_a"}),
     "emitter": ({"type", "radiance"}, {"type", "radiance"}),
 }
 MESH_SOURCES = ("quad", "box", "icosphere", "obj")
@@ -125,6 +126,10 @@ class Material:
     roughness: float = 0.0
     ior: float = 1.0
     radiance: np.ndarray | None = None
+    # translucent: per unit length in the mesh's own coordinates
+    sigma_s: np.ndarray | None = None
+    sigma_a: np.ndarray | None = None
+    g: float = 0.0
 
 
 @dataclass
@@ -145,6 +150,7 @@ class Instance:
     faces: np.ndarray
     normals: np.ndarray | None  # world space or None
     estimator: str | None = None
+    scale: float = 1.0  # the transform's uniform scale (a medium's coefficients are divided by it)
 
 
 @dataclass
@@ -213,6 +219,19 @@ def parse_material(name, m):
         mat.ior = _num(m["ior"], f"{path}.ior")
         if not mat.ior > 0:
             raise SceneError(f"{path}.ior: must be > 0, got {mat.ior}")
+    elif t == "translucent":
+        mat.ior = _num(m["ior"], f"{path}.ior")
+        if not mat.ior > 0:
+            raise SceneError(f"{path}.ior: must be > 0, got {mat.ior}")
+        for key in ("sigma_s", "sigma_a"):
+            v = _vec3(m[key], f"{path}.{key}")
+            for i in range(3):
+                if not (np.isfinite(v[i]) and v[i] >= 0):
+                    raise SceneError(f"{path}.{key}[{i}]: must be finite and >= 0, got {v[i]}")
+            setattr(mat, key, v)
+        mat.g = _num(m.get("g", 0.0), f"{path}.g")
+        if not abs(mat.g) < 1:
+            raise SceneError(f"{path}.g: must be in (-1, 1), got {mat.g}")
     elif t == "emitter":
         mat.radiance = _vec3(m["radiance"], f"{path}.radiance")
         for i in range(3):
@@ -564,7 +583,7 @@ def parse_scene(doc, scene_dir, path="<scene>"):
             if np.any(ln == 0):
                 raise SceneError(f"meshes.{mname}: zero-length vertex normal in the OBJ file")
             nrm = nrm / ln
-        instances.append(Instance(i, mname, materials[matname], pos, md.faces, nrm, est))
+        instances.append(Instance(i, mname, materials[matname], pos, md.faces, nrm, est, float(s)))
     # meshes that no instance uses still have to be valid
     for mname in meshes_doc:
         if mname not in meshes:

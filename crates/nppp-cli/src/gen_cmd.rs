@@ -11,8 +11,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use nppp_estimator::WriterOptions;
 use nppp_estimator::dataset::MAX_K;
 use nppp_render::datagen::{
-    default_max_internal_bounces,
-    GenConfig, GenObject, GenStats, generate, measure_bvh,
+    GenConfig, GenObject, GenStats, default_max_internal_bounces, generate, measure_bvh,
 };
 use nppp_scene::procedural::Procedural;
 use nppp_scene::{Mesh, Scene, SceneError};

@@ -19,6 +19,7 @@
 use crate::accel::SceneHit;
 use crate::bsdf::Bsdf;
 use crate::estimator::{EntryBatch, EntryNee, EstimatorStats, Meet, SkippedVertices};
+use crate::medium::HeroChannel;
 use crate::scene_data::{RenderScene, SurfaceKind};
 use glam::{Vec2, Vec3};
 use nppp_geom::sampling::power_heuristic;
@@ -67,6 +68,8 @@ pub struct PathState {
     /// `NO_MEDIUM`. Set when the path refracts into a translucent object,
     /// cleared when it refracts out (media do not nest).
     pub medium: u32,
+    /// Spectral MIS of the current medium visit (see `crate::medium`).
+    pub hero: HeroChannel,
 }
 
 /// `PathState::medium` of a path outside every medium.
@@ -88,6 +91,7 @@ impl PathState {
             eta_scale: 1.0,
             skip_instance: crate::accel::NO_SKIP,
             medium: NO_MEDIUM,
+            hero: HeroChannel::pick(0.0),
         }
     }
 }
@@ -464,7 +468,10 @@ fn shade(
         // Refracted: into the object's medium (if it has one) from its front
         // side, out of it from its back side.
         path.medium = match scene.media[hit.instance as usize] {
-            Some(_) if wo_world.dot(ng) > 0.0 => hit.instance,
+            Some(_) if wo_world.dot(ng) > 0.0 => {
+                path.hero = HeroChannel::pick(path.rng.uniform());
+                hit.instance
+            }
             _ => NO_MEDIUM,
         };
     }
@@ -485,8 +492,8 @@ fn scatter_in_medium(
         path.medium = NO_MEDIUM;
         return None;
     };
-    let flight = medium.sample_free_flight(t_max, path.rng.uniform(), path.rng.uniform());
-    path.beta *= flight.weight;
+    let flight = medium.sample_free_flight(t_max, path.hero.channel, path.rng.uniform());
+    path.hero.apply(&mut path.beta, &flight);
     if !flight.scattered {
         return None;
     }

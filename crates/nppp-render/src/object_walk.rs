@@ -8,7 +8,7 @@
 use crate::accel::Blas;
 use crate::bsdf::Bsdf;
 use crate::integrator::{offset_ray_origin, sample_scatter, shading_frame};
-use crate::medium::Medium;
+use crate::medium::{HeroChannel, Medium};
 use crate::scene_data::{OFFSET_REL, SurfaceKind};
 use glam::Vec3;
 use nppp_estimator::Exit;
@@ -129,12 +129,13 @@ impl ObjectTracer<'_> {
         let mut first = true;
         // Whether the path is inside the object's medium.
         let mut in_medium = false;
+        let mut hero = HeroChannel::pick(0.0);
         loop {
             let hit = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY);
             if let (true, Some(medium)) = (in_medium, &self.medium) {
                 let t_max = hit.map_or(f32::INFINITY, |h| h.t);
-                let flight = medium.sample_free_flight(t_max, rng.uniform(), rng.uniform());
-                beta *= flight.weight;
+                let flight = medium.sample_free_flight(t_max, hero.channel, rng.uniform());
+                hero.apply(&mut beta, &flight);
                 if flight.scattered {
                     let p = o + d * flight.t;
                     if bounces >= self.max_internal_bounces {
@@ -205,6 +206,9 @@ impl ObjectTracer<'_> {
             if wi.dot(ng) * wo.dot(ng) < 0.0 {
                 // Refracted: into the medium from the front (outside), out of it from the back.
                 in_medium = wo.dot(ng) > 0.0;
+                if in_medium && self.medium.is_some() {
+                    hero = HeroChannel::pick(rng.uniform());
+                }
             }
             let eps = (p.abs().max_element().max(r) * OFFSET_REL).max(f32::MIN_POSITIVE);
             o = offset_ray_origin(p, ng, wi, eps);

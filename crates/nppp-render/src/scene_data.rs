@@ -81,7 +81,10 @@ pub fn surface_of(m: &Material) -> SurfaceKind {
 pub fn medium_of(m: &Material) -> Option<Medium> {
     match *m {
         Material::Translucent {
-            sigma_s, sigma_a, g, ..
+            sigma_s,
+            sigma_a,
+            g,
+            ..
         } => Some(Medium::new(sigma_s, sigma_a, g)),
         _ => None,
     }
@@ -187,7 +190,9 @@ impl RenderScene {
             media: scene
                 .instances
                 .iter()
-                .map(|i| medium_of(&scene.materials[i.material]).map(|m| m.scaled(i.transform.scale)))
+                .map(|i| {
+                    medium_of(&scene.materials[i.material]).map(|m| m.scaled(i.transform.scale))
+                })
                 .collect(),
             estimators: None,
         }

@@ -33,14 +33,17 @@ pub fn open_edge(mesh: &Mesh) -> Option<OpenEdge> {
             *welded.entry(key(p)).or_insert(n)
         })
         .collect();
-    let mut edges: HashMap<(u32, u32), (u32, [u32; 2])> = HashMap::with_capacity(mesh.triangles.len() * 3);
+    let mut edges: HashMap<(u32, u32), (u32, [u32; 2])> =
+        HashMap::with_capacity(mesh.triangles.len() * 3);
     for t in &mesh.triangles {
         let v = t.map(|i| ids[i as usize]);
         if v[0] == v[1] || v[1] == v[2] || v[2] == v[0] {
             continue;
         }
         for k in 0..3 {
-            let e = edges.entry((v[k], v[(k + 1) % 3])).or_insert((0, [t[k], t[(k + 1) % 3]]));
+            let e = edges
+                .entry((v[k], v[(k + 1) % 3]))
+                .or_insert((0, [t[k], t[(k + 1) % 3]]));
             e.0 += 1;
         }
     }
@@ -124,7 +127,9 @@ mod tests {
         let mut split = Mesh::default();
         for t in &s.triangles {
             let n = split.positions.len() as u32;
-            split.positions.extend(t.iter().map(|&i| s.positions[i as usize]));
+            split
+                .positions
+                .extend(t.iter().map(|&i| s.positions[i as usize]));
             split.triangles.push([n, n + 1, n + 2]);
         }
         assert_eq!(open_edge(&split), None);

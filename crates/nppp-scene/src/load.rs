@@ -293,7 +293,13 @@ impl Cx<'_> {
             .map(|(name, v)| self.mesh(v, &join_key(&mesh_path, name)))
             .collect::<Res<Vec<Mesh>>>()?;
         self.check_world_extent(&camera, &meshes, &mesh_names, &instances)?;
-        self.check_translucent_closed(&meshes, &mesh_names, &materials, &material_names, &instances)?;
+        self.check_translucent_closed(
+            &meshes,
+            &mesh_names,
+            &materials,
+            &material_names,
+            &instances,
+        )?;
         // Validated above: every "obj" value is a non-empty string.
         let obj_files = mesh_values
             .iter()
@@ -330,7 +336,9 @@ impl Cx<'_> {
     ) -> Res<()> {
         let mut checked = vec![false; meshes.len()];
         for inst in instances {
-            if !matches!(materials[inst.material], Material::Translucent { .. }) || checked[inst.mesh] {
+            if !matches!(materials[inst.material], Material::Translucent { .. })
+                || checked[inst.mesh]
+            {
                 continue;
             }
             checked[inst.mesh] = true;

@@ -625,6 +625,98 @@ fn unknown_material_type() {
     );
 }
 
+#[test]
+fn translucent_loads_with_its_medium() {
+    let mut v = base();
+    v["materials"]["jade"] = json!({"type": "translucent", "ior": 1.6,
+        "sigma_s": [90, 110, 95], "sigma_a": [1.5, 0.4, 1.2], "g": 0.2});
+    v["instances"][2]["material"] = json!("jade");
+    let s = parse(&v).expect("a translucent closed mesh loads");
+    let jade = s.material_names.iter().position(|n| n == "jade").unwrap();
+    assert_eq!(
+        s.materials[jade],
+        nppp_scene::Material::Translucent {
+            ior: 1.6,
+            sigma_s: glam::Vec3::new(90.0, 110.0, 95.0),
+            sigma_a: glam::Vec3::new(1.5, 0.4, 1.2),
+            g: 0.2
+        }
+    );
+    // g is optional (isotropic).
+    v["materials"]["jade"].as_object_mut().unwrap().remove("g");
+    let s = parse(&v).unwrap();
+    assert!(matches!(s.materials[jade], nppp_scene::Material::Translucent { g, .. } if g == 0.0));
+}
+
+#[test]
+fn translucent_bad_coefficients_phase_and_ior() {
+    let jade = || json!({"type": "translucent", "ior": 1.5, "sigma_s": [1, 1, 1], "sigma_a": [0, 0, 0], "g": 0});
+    let cases: [(&str, Value, &str, &str); 6] = [
+        (
+            "sigma_s",
+            json!([1, -2, 1]),
+            "materials.jade.sigma_s[1]",
+            ">= 0",
+        ),
+        (
+            "sigma_a",
+            json!([1e39, 0, 0]),
+            "materials.jade.sigma_a[0]",
+            "finite",
+        ),
+        ("g", json!(1.0), "materials.jade.g", "|g| < 1"),
+        ("g", json!(-1.5), "materials.jade.g", "|g| < 1"),
+        ("ior", json!(0), "materials.jade.ior", "positive"),
+        ("sigma_s", json!([1, 1]), "materials.jade.sigma_s", "3"),
+    ];
+    for (key, value, path, needle) in cases {
+        expect_error(
+            |v| {
+                let mut m = jade();
+                m[key] = value;
+                v["materials"]["jade"] = m;
+            },
+            path,
+            needle,
+        );
+    }
+    expect_error(
+        |v| {
+            let mut m = jade();
+            m["colour"] = json!([1, 1, 1]);
+            v["materials"]["jade"] = m;
+        },
+        "materials.jade.colour",
+        "unknown key",
+    );
+    expect_error(
+        |v| {
+            let mut m = jade();
+            m.as_object_mut().unwrap().remove("sigma_a");
+            v["materials"]["jade"] = m;
+        },
+        "materials.jade.sigma_a",
+        "missing",
+    );
+}
+
+#[test]
+fn translucent_on_an_open_mesh_names_mesh_and_material() {
+    // The floor quad has a border: no inside for a medium.
+    let err = expect_error(
+        |v| {
+            v["materials"]["jade"] = json!({"type": "translucent", "ior": 1.5, "sigma_s": [1, 1, 1], "sigma_a": [0, 0, 0]});
+            v["instances"][0]["material"] = json!("jade");
+        },
+        "meshes.floor",
+        "not a closed mesh",
+    );
+    let msg = err.to_string();
+    assert!(msg.contains("\"jade\"") && msg.contains("border"), "{msg}");
+    // The same open mesh with a surface material is fine.
+    assert!(parse(&base()).is_ok());
+}
+
 // ---------------------------------------------------------------- meshes
 
 #[test]
