@@ -18,11 +18,44 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+/// The M' at which plain path tracing is measured: every M' up to 16, then
+/// about two per octave (1, 2, ..., 16, 24, 32, 48, 64, ...) and M itself,
+/// so that a translucent scene at M = 256 costs 23 PT configurations, not 256.
+fn pt_bounce_ladder(m: u32) -> Vec<u32> {
+    let mut ladder: Vec<u32> = (1..=m.min(16)).collect();
+    let mut step = 16u32;
+    while step < m {
+        for x in [step + step / 2, step * 2] {
+            if x < m {
+                ladder.push(x);
+            }
+        }
+        step *= 2;
+    }
+    if m > 16 {
+        ladder.push(m);
+    }
+    ladder
+}
+
+#[cfg(test)]
+mod ladder_tests {
+    #[test]
+    fn ladder_is_every_m_to_16_then_two_per_octave_ending_at_m() {
+        assert_eq!(super::pt_bounce_ladder(5), vec![1, 2, 3, 4, 5]);
+        let l = super::pt_bounce_ladder(256);
+        assert_eq!(&l[15..], &[16, 24, 32, 48, 64, 96, 128, 192, 256]);
+        let l = super::pt_bounce_ladder(100);
+        assert_eq!(&l[15..], &[16, 24, 32, 48, 64, 96, 100]);
+    }
+}
+
 /// The benchmark scenes, in `--scenes-dir`.
 const DEFAULT_SCENES: &[&str] = &[
     "cornell-box",
     "cornell-glass",
     "cornell-gold",
+    "cornell-jade",
     "tube",
     "room",
 ];
@@ -67,7 +100,9 @@ pub struct BenchArgs {
     pub scale: Option<f64>,
     /// M: the reference's and the NPPP configurations' max bounces; plain
     /// path tracing runs at every M' = 1..M. Default: each scene's own
-    /// `render.max_bounces` (cornell-glass renders at M = 10, the rest at 5).
+    /// `render.max_bounces` (cornell-glass renders at M = 10, cornell-jade at
+    /// 256, the rest at 5). PT's M' ladder is every value to 16, then about
+    /// two per octave.
     #[arg(long)]
     pub max_bounces: Option<u32>,
     /// Also run PT + oracle (the real object traced alone in place of the
@@ -504,7 +539,8 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         .iter()
         .filter(|i| i.estimator.is_some())
         .count();
-    let mut configs: Vec<Config> = (1..=m)
+    let mut configs: Vec<Config> = pt_bounce_ladder(m)
+        .into_iter()
         .map(|mm| Config {
             kind: Kind::Pt,
             m: mm,
