@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use nppp_render::estimator::{
-    BatchDecoder, EntryNee, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
+    BatchDecoder, EntryMask, EntryNee, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
 };
 use nppp_render::{RenderOptions, RenderScene, image_io};
 use std::path::{Path, PathBuf};
@@ -74,6 +74,12 @@ pub struct RenderArgs {
     /// probability of its weight (stochastic filtering, one memory access).
     #[arg(long, value_enum, default_value_t = LatentLookupChoice::Interpolate)]
     pub latent_lookup: LatentLookupChoice,
+    /// Who decides whether a ray entering an estimator's sphere hits the
+    /// object: `auto` (the real mesh for translucent objects, whose entries
+    /// replace ~100 internal bounces; the learned mask otherwise), `learned`
+    /// (the baked mask grid), `exact` (one query of the object's own BVH).
+    #[arg(long, value_enum, default_value_t = EntryMaskChoice::Auto)]
+    pub entry_mask: EntryMaskChoice,
     /// Which decoder answers batched estimator queries: the plain-Rust CPU
     /// decoder, or the Burn module on a backend (burn-wgpu needs the `wgpu` feature).
     #[arg(long, value_enum, default_value_t = DecoderChoice::Cpu)]
@@ -98,6 +104,13 @@ pub enum EntryNeeChoice {
 pub enum LatentLookupChoice {
     Interpolate,
     Stochastic,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EntryMaskChoice {
+    Auto,
+    Learned,
+    Exact,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -348,6 +361,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             LatentLookupChoice::Interpolate => LatentLookup::Interpolate,
             LatentLookupChoice::Stochastic => LatentLookup::Stochastic,
         };
+        e.entry_mask = match a.entry_mask {
+            EntryMaskChoice::Auto => EntryMask::Auto,
+            EntryMaskChoice::Learned => EntryMask::Learned,
+            EntryMaskChoice::Exact => EntryMask::Exact,
+        };
         attach_decoders(e, a.decoder)?;
     }
     let build = t0.elapsed().as_secs_f64();
@@ -359,14 +377,17 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         // 64-spp render, down to 1 below 32 spp.
         // The scene's P is the contract's "used only once the path has made
         // at least P bounces": auto may choose a larger P, or none, never a
-        // smaller one (and never 0, see PilotOptions::min_p).
+        // smaller one (and never 0 but for translucent objects, see
+        // PilotOptions::min_p and min_p_medium).
         let defaults = nppp_render::auto::PilotOptions::default();
         let min_p = settings.estimator_min_bounces.max(defaults.min_p);
+        let min_p_medium = settings.estimator_min_bounces.max(defaults.min_p_medium);
         let pilot = nppp_render::auto::PilotOptions {
             max_bounces: settings.max_bounces,
             seed: settings.seed,
             spp: (settings.spp / 16).clamp(1, 4),
             min_p,
+            min_p_medium,
             max_p: defaults.max_p.max(min_p),
             ..defaults
         };
