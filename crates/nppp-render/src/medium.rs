@@ -36,17 +36,27 @@ pub struct FreeFlight {
     pub t: f32,
     /// Whether a real scattering event happens at `t` (before `t_max`).
     pub scattered: bool,
-    /// The event's contribution over the hero channel's pdf: sigma_s Tr(t)
-    /// / p_hero for a scattering event, Tr(t_max) / P_hero(no event)
-    /// otherwise.
-    pub weight: Vec3,
-    /// Each channel's pdf of the same event over the hero's (1 in the
-    /// hero's channel).
-    pub pdf_ratio: Vec3,
+    /// The event's contribution: sigma_s Tr(t) for a scattering event,
+    /// Tr(t_max) otherwise.
+    pub f: Vec3,
+    /// Each channel's pdf of the same event: sigma_t Tr(t) for a
+    /// scattering event, Tr(t_max) (no event before the surface) otherwise.
+    pub pdf: Vec3,
+}
+
+impl FreeFlight {
+    /// The hero's own estimate of the event (contribution over its pdf),
+    /// without the visit's MIS weight.
+    pub fn weight(&self, hero: u8) -> Vec3 {
+        let p = self.pdf[hero as usize];
+        if p > 0.0 { self.f / p } else { Vec3::ZERO }
+    }
 }
 
 /// The spectral MIS state of a path inside a medium: the hero channel of
-/// this visit and, per channel, the visit's pdf so far over the hero's.
+/// this visit and, per channel, the visit's pdf so far, up to a common
+/// factor (kept so that the largest is 1: only ratios matter, and a long
+/// visit would otherwise overflow f32).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct HeroChannel {
     pub channel: u8,
@@ -64,18 +74,18 @@ impl HeroChannel {
     }
 
     /// Folds a free flight into a throughput that already carries this
-    /// visit's MIS weight: the throughput stays f / mean(p) over the visit.
+    /// visit's MIS weight: the throughput stays f / mean(p) over the visit
+    /// (the hero's pdf cancels, so nothing is divided by it).
     #[inline]
     pub fn apply(&mut self, beta: &mut Vec3, flight: &FreeFlight) {
-        // Channels far less likely than the hero's only need to stay finite.
-        let next = (self.pdf_ratio * flight.pdf_ratio).min(Vec3::splat(1e30));
-        let (before, after) = (self.pdf_ratio.element_sum(), next.element_sum());
-        *beta = if after > 0.0 && after.is_finite() {
-            *beta * flight.weight * (before / after)
-        } else {
-            Vec3::ZERO
-        };
-        self.pdf_ratio = next;
+        let joint = self.pdf_ratio * flight.pdf;
+        let (sum, max) = (joint.element_sum(), joint.max_element());
+        if !(sum > 0.0 && sum.is_finite()) {
+            *beta = Vec3::ZERO;
+            return;
+        }
+        *beta *= flight.f * (self.pdf_ratio.element_sum() / sum);
+        self.pdf_ratio = joint / max;
     }
 }
 
@@ -124,21 +134,11 @@ impl Medium {
             let tr = self.transmittance(t_max);
             (t_max, false, tr, tr)
         };
-        let p_hero = pdf[hero as usize];
-        if p_hero > 0.0 && p_hero.is_finite() {
-            FreeFlight {
-                t,
-                scattered,
-                weight: f / p_hero,
-                pdf_ratio: pdf / p_hero,
-            }
-        } else {
-            FreeFlight {
-                t,
-                scattered,
-                weight: Vec3::ZERO,
-                pdf_ratio: Vec3::ONE,
-            }
+        FreeFlight {
+            t,
+            scattered,
+            f,
+            pdf,
         }
     }
 
@@ -192,8 +192,10 @@ mod tests {
             let f = m.sample_free_flight(t_max, hero.channel, rng.uniform());
             let mut beta = Vec3::ONE;
             hero.apply(&mut beta, &f);
-            // Bounded: at most three times the hero's own weight.
-            assert!(beta.max_element() <= 3.0 * f.weight.max_element() + 1e-4);
+            // Bounded: at most three times each channel's own estimate.
+            for c in 0..3 {
+                assert!(beta[c] <= 3.0 * f.weight(c as u8)[c] + 1e-4, "{beta} {f:?}");
+            }
             if f.scattered {
                 assert!(f.t < t_max);
                 scattered += beta;
@@ -220,14 +222,14 @@ mod tests {
         let m = Medium::new(Vec3::ZERO, Vec3::ZERO, 0.3);
         let f = m.sample_free_flight(f32::INFINITY, 1, 0.999);
         assert!(!f.scattered);
-        assert_eq!(f.weight, Vec3::ONE);
+        assert_eq!(f.weight(1), Vec3::ONE);
     }
 
     #[test]
     fn an_escaping_ray_in_a_medium_has_zero_weight_where_it_must_scatter() {
         let m = Medium::new(Vec3::ONE, Vec3::ZERO, 0.0);
         let f = m.sample_free_flight(f32::INFINITY, 1, 0.5);
-        assert!(f.scattered && f.weight.is_finite());
+        assert!(f.scattered && f.weight(1).is_finite());
     }
 
     #[test]
@@ -282,8 +284,8 @@ mod tests {
             let m = Medium::new(Vec3::from(s), Vec3::from(a), 0.0);
             let mut hero = HeroChannel::pick(uc);
             let f = m.sample_free_flight(t_max, hero.channel, ud);
-            prop_assert!(f.weight.is_finite() && f.weight.min_element() >= 0.0);
-            prop_assert!(f.pdf_ratio.is_finite() && f.pdf_ratio.min_element() >= 0.0);
+            prop_assert!(f.f.is_finite() && f.f.min_element() >= 0.0);
+            prop_assert!(f.pdf.is_finite() && f.pdf.min_element() >= 0.0);
             prop_assert!(f.t <= t_max);
             let mut beta = Vec3::ONE;
             for _ in 0..50 {

@@ -579,7 +579,7 @@ impl Cx<'_> {
                 let g = match f.get("g") {
                     Some((gv, gp)) => {
                         let g = self.float(gv, &gp)?;
-                        if !(g.abs() < 1.0) {
+                        if g.is_nan() || g.abs() >= 1.0 {
                             return Err(self.invalid(
                                 &gp,
                                 format!("{g} is outside (-1, 1): the Henyey-Greenstein mean cosine g must satisfy |g| < 1"),
