@@ -29,6 +29,9 @@ pub struct BsdfSample {
     /// Solid-angle pdf; for delta lobes the discrete probability of the lobe.
     pub pdf: f32,
     pub delta: bool,
+    /// Whether the sample crossed the surface (refraction): the integrator
+    /// learns it here instead of guessing from the material or the sides.
+    pub transmitted: bool,
 }
 
 impl Bsdf {
@@ -61,6 +64,7 @@ impl Bsdf {
                     weight: albedo,
                     pdf: cosine_hemisphere_pdf(wi.z),
                     delta: false,
+                    transmitted: false,
                 })
             }
             Bsdf::Conductor { reflectance, alpha } => {
@@ -74,6 +78,7 @@ impl Bsdf {
                         weight: reflectance,
                         pdf: 1.0,
                         delta: true,
+                        transmitted: false,
                     });
                 }
                 let m = ggx_sample_visible(wo, alpha, u);
@@ -91,6 +96,7 @@ impl Bsdf {
                     weight: reflectance * smith_g1(wi, alpha),
                     pdf,
                     delta: false,
+                    transmitted: false,
                 })
             }
             Bsdf::Dielectric { ior } => {
@@ -102,6 +108,7 @@ impl Bsdf {
                         weight: Vec3::ONE,
                         pdf: f,
                         delta: true,
+                        transmitted: false,
                     })
                 } else {
                     let entering = wo.z > 0.0;
@@ -114,6 +121,7 @@ impl Bsdf {
                         weight: Vec3::splat(scale),
                         pdf: 1.0 - f,
                         delta: true,
+                        transmitted: true,
                     })
                 }
             }

@@ -64,16 +64,20 @@ pub struct PathState {
     /// The instance whose estimator this ray has just left (ignored by the
     /// next intersection), or `NO_SKIP`.
     pub skip_instance: u32,
-    /// The instance whose medium the path is travelling through, or
-    /// `NO_MEDIUM`. Set when the path refracts into a translucent object,
-    /// cleared when it refracts out (media do not nest).
-    pub medium: u32,
-    /// Spectral MIS of the current medium visit (see `crate::medium`).
-    pub hero: HeroChannel,
+    /// The medium the path is travelling through: set when the path
+    /// refracts into a translucent object, cleared when it refracts out
+    /// (media do not nest).
+    pub medium: Option<MediumVisit>,
 }
 
-/// `PathState::medium` of a path outside every medium.
-pub const NO_MEDIUM: u32 = u32::MAX;
+/// A path's visit of a translucent object's medium.
+#[derive(Clone, Copy, Debug)]
+pub struct MediumVisit {
+    /// The instance whose medium it is (`RenderScene::media`).
+    pub instance: u32,
+    /// The visit's spectral MIS (see `crate::medium`).
+    pub hero: HeroChannel,
+}
 
 impl PathState {
     pub fn camera(slot: u32, rng: SampleRng, origin: Vec3, dir: Vec3) -> Self {
@@ -90,8 +94,7 @@ impl PathState {
             prev_point: origin,
             eta_scale: 1.0,
             skip_instance: crate::accel::NO_SKIP,
-            medium: NO_MEDIUM,
-            hero: HeroChannel::pick(0.0),
+            medium: None,
         }
     }
 }
@@ -192,7 +195,7 @@ impl Wavefront {
                 let next = match self.meets[r] {
                     Meet::Estimator(_) => self.next[r],
                     // In a medium, an event may happen before the surface.
-                    meet if path.medium != NO_MEDIUM => {
+                    meet if path.medium.is_some() => {
                         let hit = match meet {
                             Meet::Surface(h) => Some(h),
                             _ => None,
@@ -379,7 +382,7 @@ fn follow_exit(
         }
     }
     path.skip_instance = instance;
-    path.medium = NO_MEDIUM;
+    path.medium = None;
     Next::Continue
 }
 
@@ -433,7 +436,7 @@ fn shade(
     // smooth boundary, so every light sample would be blocked.
     let u_light = path.rng.uniform();
     let u_light2 = path.rng.uniform2();
-    let in_medium = path.medium != NO_MEDIUM;
+    let in_medium = path.medium.is_some();
     if !in_medium {
         let vertex = SurfaceVertex {
             p,
@@ -452,7 +455,7 @@ fn shade(
     let Some((wi, bs)) = sample_scatter(&bsdf, &frame, ng, wo_world, u_lobe, u_dir) else {
         return Next::Terminate;
     };
-    if bs.wi.z * wo.z < 0.0 {
+    if bs.transmitted {
         path.eta_scale /= bs.weight.x;
     }
     path.beta *= bs.weight;
@@ -464,15 +467,15 @@ fn shade(
     path.origin = offset_point(p, ng, wi, eps);
     path.dir = wi;
     path.skip_instance = crate::accel::NO_SKIP;
-    if wi.dot(ng) * wo_world.dot(ng) < 0.0 {
-        // Refracted: into the object's medium (if it has one) from its front
-        // side, out of it from its back side.
+    if bs.transmitted {
+        // Into the object's medium (if it has one) from its front side, out
+        // of it from its back side.
         path.medium = match scene.media[hit.instance as usize] {
-            Some(_) if wo_world.dot(ng) > 0.0 => {
-                path.hero = HeroChannel::pick(path.rng.uniform());
-                hit.instance
-            }
-            _ => NO_MEDIUM,
+            Some(_) if wo_world.dot(ng) > 0.0 => Some(MediumVisit {
+                instance: hit.instance,
+                hero: HeroChannel::pick(path.rng.uniform()),
+            }),
+            _ => None,
         };
     }
     russian_roulette(path, u_rr)
@@ -488,12 +491,10 @@ fn scatter_in_medium(
     path: &mut PathState,
     t_max: f32,
 ) -> Option<Next> {
-    let Some(medium) = scene.media[path.medium as usize] else {
-        path.medium = NO_MEDIUM;
-        return None;
-    };
-    let flight = medium.sample_free_flight(t_max, path.hero.channel, path.rng.uniform());
-    path.hero.apply(&mut path.beta, &flight);
+    let visit = path.medium.as_mut()?;
+    let medium = scene.media[visit.instance as usize]?;
+    let flight = medium.sample_free_flight(t_max, visit.hero.channel, path.rng.uniform());
+    visit.hero.apply(&mut path.beta, &flight);
     if !flight.scattered {
         return None;
     }
@@ -624,8 +625,7 @@ pub fn sample_scatter(
     let bs = bsdf.sample(wo, u_lobe, u_dir)?;
     let wi = frame.to_world(bs.wi);
     let reflect_side = wi.dot(ng) * wo_world.dot(ng) > 0.0;
-    let transmits = matches!(bsdf, Bsdf::Dielectric { .. }) && bs.wi.z * wo.z < 0.0;
-    if reflect_side == transmits {
+    if reflect_side == bs.transmitted {
         return None;
     }
     Some((wi, bs))

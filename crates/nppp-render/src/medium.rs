@@ -44,15 +44,6 @@ pub struct FreeFlight {
     pub pdf: Vec3,
 }
 
-impl FreeFlight {
-    /// The hero's own estimate of the event (contribution over its pdf),
-    /// without the visit's MIS weight.
-    pub fn weight(&self, hero: u8) -> Vec3 {
-        let p = self.pdf[hero as usize];
-        if p > 0.0 { self.f / p } else { Vec3::ZERO }
-    }
-}
-
 /// The spectral MIS state of a path inside a medium: the hero channel of
 /// this visit and, per channel, the visit's pdf so far, up to a common
 /// factor (kept so that the largest is 1: only ratios matter, and a long
@@ -177,6 +168,13 @@ mod tests {
     use nppp_geom::SampleRng;
     use proptest::prelude::*;
 
+    /// One channel's own estimate of an event (contribution over its pdf),
+    /// without the visit's MIS weight.
+    fn weight(f: &FreeFlight, channel: u8) -> Vec3 {
+        let p = f.pdf[channel as usize];
+        if p > 0.0 { f.f / p } else { Vec3::ZERO }
+    }
+
     #[test]
     fn free_flight_weights_average_to_the_transmittance_and_scattering() {
         // E[weight over the "passed" outcomes] = Tr(t_max) and
@@ -194,7 +192,10 @@ mod tests {
             hero.apply(&mut beta, &f);
             // Bounded: at most three times each channel's own estimate.
             for c in 0..3 {
-                assert!(beta[c] <= 3.0 * f.weight(c as u8)[c] + 1e-4, "{beta} {f:?}");
+                assert!(
+                    beta[c] <= 3.0 * weight(&f, c as u8)[c] + 1e-4,
+                    "{beta} {f:?}"
+                );
             }
             if f.scattered {
                 assert!(f.t < t_max);
@@ -222,14 +223,14 @@ mod tests {
         let m = Medium::new(Vec3::ZERO, Vec3::ZERO, 0.3);
         let f = m.sample_free_flight(f32::INFINITY, 1, 0.999);
         assert!(!f.scattered);
-        assert_eq!(f.weight(1), Vec3::ONE);
+        assert_eq!(weight(&f, 1), Vec3::ONE);
     }
 
     #[test]
     fn an_escaping_ray_in_a_medium_has_zero_weight_where_it_must_scatter() {
         let m = Medium::new(Vec3::ONE, Vec3::ZERO, 0.0);
         let f = m.sample_free_flight(f32::INFINITY, 1, 0.5);
-        assert!(f.scattered && f.weight(1).is_finite());
+        assert!(f.scattered && weight(&f, 1).is_finite());
     }
 
     #[test]

@@ -127,12 +127,11 @@ impl ObjectTracer<'_> {
         let mut radiance = Vec3::ZERO;
         let mut bounces = 0u32;
         let mut first = true;
-        // Whether the path is inside the object's medium.
-        let mut in_medium = false;
-        let mut hero = HeroChannel::pick(0.0);
+        // The spectral MIS of the medium visit the path is in, if it is.
+        let mut visit: Option<HeroChannel> = None;
         loop {
             let hit = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY);
-            if let (true, Some(medium)) = (in_medium, &self.medium) {
+            if let (Some(hero), Some(medium)) = (&mut visit, &self.medium) {
                 let t_max = hit.map_or(f32::INFINITY, |h| h.t);
                 let flight = medium.sample_free_flight(t_max, hero.channel, rng.uniform());
                 hero.apply(&mut beta, &flight);
@@ -203,12 +202,10 @@ impl ObjectTracer<'_> {
                 return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
             };
             beta *= bs.weight;
-            if wi.dot(ng) * wo.dot(ng) < 0.0 {
-                // Refracted: into the medium from the front (outside), out of it from the back.
-                in_medium = wo.dot(ng) > 0.0;
-                if in_medium && self.medium.is_some() {
-                    hero = HeroChannel::pick(rng.uniform());
-                }
+            if bs.transmitted {
+                // Into the medium from the front (outside), out of it from the back.
+                visit = (wo.dot(ng) > 0.0 && self.medium.is_some())
+                    .then(|| HeroChannel::pick(rng.uniform()));
             }
             let eps = (p.abs().max_element().max(r) * OFFSET_REL).max(f32::MIN_POSITIVE);
             o = offset_ray_origin(p, ng, wi, eps);
