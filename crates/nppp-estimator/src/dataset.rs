@@ -62,6 +62,19 @@ pub struct DatasetHeader {
     pub max_internal_bounces: u32,
 }
 
+impl DatasetHeader {
+    /// Whether the data is of a translucent object (a medium inside), read
+    /// from the recorded material.
+    pub fn has_medium(&self) -> bool {
+        serde_json::from_str::<serde_json::Value>(&self.material_json).is_ok_and(|m| m["type"] == "translucent")
+    }
+
+    /// The most throughput per channel this object's exits can carry.
+    pub fn exit_throughput_bound(&self) -> f32 {
+        crate::exit::exit_throughput_bound(self.has_medium())
+    }
+}
+
 /// One input ray: its chord, whether it hits the mesh, and for a hit its k exits.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RayRecord {
@@ -837,6 +850,18 @@ fn read_up_to(r: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
 mod tests {
     use super::*;
     use nppp_geom::SampleRng;
+
+    #[test]
+    fn the_recorded_material_tells_whether_there_is_a_medium() {
+        let mut h = header(4);
+        assert!(!h.has_medium());
+        assert_eq!(h.exit_throughput_bound(), crate::EXIT_THROUGHPUT_BOUND);
+        h.material_json = r#"{"type": "translucent", "ior": 1.6, "sigma_s": [9, 9, 9], "sigma_a": [0, 0, 0], "g": 0}"#.into();
+        assert!(h.has_medium());
+        assert_eq!(h.exit_throughput_bound(), crate::EXIT_THROUGHPUT_BOUND_MEDIUM);
+        h.material_json = "{}".into();
+        assert!(!h.has_medium());
+    }
 
     fn header(k: u32) -> DatasetHeader {
         DatasetHeader {

@@ -14,7 +14,9 @@ pub mod sampler;
 
 pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
 pub use dataset::{DatasetError, DatasetHeader, DatasetReader, DatasetSummary, DatasetWriter, RayRecord, WriterOptions};
-pub use exit::{DecodeRepairs, EXIT_FEATURES, Exit, ExitTransform};
+pub use exit::{
+    DecodeRepairs, EXIT_FEATURES, EXIT_THROUGHPUT_BOUND, EXIT_THROUGHPUT_BOUND_MEDIUM, Exit, ExitTransform, exit_throughput_bound,
+};
 pub use grid::{QuantizedGrid, node_coords, node_count};
 pub use mlp::{Dense, Mlp};
 pub use quant::{QuantError, dequantize, quantize};

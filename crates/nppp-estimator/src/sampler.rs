@@ -20,6 +20,10 @@ pub struct EstimatorSampler {
     latent_dim: usize,
     noise_dim: usize,
     mlp_scratch: usize,
+    /// The most throughput per channel a decoded exit keeps
+    /// ([`crate::exit_throughput_bound`]): the file does not record the
+    /// material, so whoever knows it sets this (1, a surface, by default).
+    pub throughput_bound: f32,
 }
 
 /// A decoder layer stored `[inputs][outputs]`. `Mlp::forward_into` computes
@@ -112,7 +116,7 @@ impl EstimatorSampler {
         let noise_dim = baked.meta.noise_dim as usize;
         let mlp_scratch = 2 * baked.decoder.max_width();
         let layers = FastLayer::from_mlp(&baked.decoder);
-        Ok(Self { baked, layers, latent_dim, noise_dim, mlp_scratch })
+        Ok(Self { baked, layers, latent_dim, noise_dim, mlp_scratch, throughput_bound: crate::EXIT_THROUGHPUT_BOUND })
     }
 
     pub fn baked(&self) -> &BakedEstimator {
@@ -174,7 +178,7 @@ impl EstimatorSampler {
         noise.copy_from_slice(&r[..self.noise_dim]);
         let at = forward_fast(&self.layers, &mut scratch.mlp);
         scratch.output.copy_from_slice(&scratch.mlp[at..at + EXIT_FEATURES]);
-        self.baked.transform.decode(&scratch.output, self.baked.meta.max_internal_bounces, repairs)
+        self.baked.transform.decode(&scratch.output, self.baked.meta.max_internal_bounces, self.throughput_bound, repairs)
     }
 
     /// The decoder's raw output (standardized features) for one input row
@@ -360,7 +364,7 @@ mod tests {
             assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{fast:?} vs {f:?}");
         }
         let mut rep2 = DecodeRepairs::default();
-        let want = est.transform.decode(&f, 64, &mut rep2);
+        let want = est.transform.decode(&f, 64, crate::EXIT_THROUGHPUT_BOUND, &mut rep2);
         assert!(e.position.distance(want.position) < 1e-5 && e.direction.distance(want.direction) < 1e-5, "{e:?} {want:?}");
         assert!((e.throughput - want.throughput).abs().max_element() <= 1e-4 * (1.0 + want.throughput.max_element()));
         assert_eq!(e.bounces, want.bounces);

@@ -298,7 +298,7 @@ pub fn compute_grids(
     let est = BurnEstimator::new(
         &loaded.model,
         loaded.meta.transform.clone(),
-        loaded.meta.dataset.max_internal_bounces,
+        &loaded.meta.dataset,
         loaded.model_config.noise_dim,
     )?;
     let latent = eval_grid(
@@ -426,12 +426,14 @@ fn eval_pair(
     let mut unbaked = BurnEstimator::new(
         &loaded.model,
         tr.clone(),
-        loaded.meta.dataset.max_internal_bounces,
+        &loaded.meta.dataset,
         loaded.model_config.noise_dim,
     )?;
     let mu = evaluate(&mut unbaked, heldout, k, tr, &opts)?;
+    let mut sampler = EstimatorSampler::try_new(baked)?;
+    sampler.throughput_bound = loaded.meta.dataset.exit_throughput_bound();
     let mut bs = BakedSource {
-        sampler: EstimatorSampler::try_new(baked)?,
+        sampler,
         repairs: DecodeRepairs::default(),
     };
     let mb = evaluate(&mut bs, heldout, k, tr, &opts)?;

@@ -50,6 +50,8 @@ pub struct BurnEstimator {
     pub device: Device,
     pub transform: ExitTransform,
     pub max_bounces: u32,
+    /// See `nppp_estimator::exit_throughput_bound`.
+    pub throughput_bound: f32,
     pub noise_dim: usize,
     pub repairs: DecodeRepairs,
 }
@@ -58,7 +60,7 @@ impl BurnEstimator {
     pub fn new(
         model: &NpppModel,
         transform: ExitTransform,
-        max_bounces: u32,
+        dataset: &crate::DatasetInfo,
         noise_dim: usize,
     ) -> Result<Self> {
         let model = model.valid();
@@ -75,7 +77,8 @@ impl BurnEstimator {
             model,
             device,
             transform,
-            max_bounces,
+            max_bounces: dataset.max_internal_bounces,
+            throughput_bound: dataset.exit_throughput_bound(),
             noise_dim,
             repairs: DecodeRepairs::default(),
         })
@@ -135,10 +138,12 @@ impl ExitSource for BurnEstimator {
             let y = to_vec(self.model.generate(self.features(chunk), noise, k))?;
             for f in y.chunks_exact(EXIT_FEATURES) {
                 let f: &[f32; EXIT_FEATURES] = f.try_into().expect("chunk of EXIT_FEATURES");
-                out.push(
-                    self.transform
-                        .decode(f, self.max_bounces, &mut self.repairs),
-                );
+                out.push(self.transform.decode(
+                    f,
+                    self.max_bounces,
+                    self.throughput_bound,
+                    &mut self.repairs,
+                ));
             }
         }
         Ok(out)

@@ -1059,12 +1059,8 @@ fn train_on(
     };
 
     let evaluate_model = |model: &NpppModel| -> Result<HeldoutMetrics> {
-        let mut est = BurnEstimator::new(
-            model,
-            data.transform.clone(),
-            info.max_internal_bounces,
-            cfg.model.noise_dim,
-        )?;
+        let mut est =
+            BurnEstimator::new(model, data.transform.clone(), &info, cfg.model.noise_dim)?;
         evaluate(&mut est, &data.heldout, data.k, &data.transform, &eval_opts)
     };
 

@@ -54,7 +54,13 @@ fn baked_nodes_equal_the_encoder_within_the_quantization_step() {
     let model = trained(&dir);
     let device = BackendKind::Ndarray.device().unwrap();
     let loaded = load_model_dir(&model, &device).unwrap();
-    let est = BurnEstimator::new(&loaded.model, loaded.meta.transform.clone(), 16, 16).unwrap();
+    let est = BurnEstimator::new(
+        &loaded.model,
+        loaded.meta.transform.clone(),
+        &loaded.meta.dataset,
+        16,
+    )
+    .unwrap();
     let res = 4u32;
     let nodes: Vec<SpherePair> = (0..res.pow(4) as usize)
         .map(|i| SpherePair(node_coords(res, i)))

@@ -67,8 +67,8 @@ pub struct PilotOptions {
     pub min_p: u32,
     /// Smallest P tried for a translucent object's estimator. 0 by default:
     /// what the camera sees of a dense medium is subsurface transport, which
-    /// the network reproduces (cornell-jade at P = 0: image mean within 0.5%
-    /// of PT's, 15x faster at equal error, BENCHMARKS.md); only the
+    /// the network reproduces (cornell-jade at P = 0: image mean within 0.3%
+    /// of PT's, 13x faster at equal error, BENCHMARKS.md); only the
     /// boundary's faint specular reflection is blurred.
     pub min_p_medium: u32,
     /// Largest P tried.
