@@ -1,8 +1,8 @@
 //! The estimator's hot paths on the committed default estimator
 //! (`models/cornell-knot.nppp`): latent and mask grid lookups (quadrilinear
 //! and stochastic, incoherent rays), and the decoder at several batch sizes, on the
-//! plain-Rust CPU decoder (row by row, and as matrix products from
-//! `GEMM_MIN_ROWS` rows) and on Burn's CPU backends.
+//! plain-Rust CPU decoder (row by row, and as the matrix products every
+//! batch takes) and on Burn's CPU backends.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use nppp_estimator::{BakedEstimator, EXIT_FEATURES, EstimatorSampler, SamplerScratch};

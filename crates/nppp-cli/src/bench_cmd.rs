@@ -406,27 +406,19 @@ fn scene_name(path: &Path) -> String {
         .unwrap_or_else(|| "scene".into())
 }
 
-/// FNV-1a, 64 bits: a stable hash of the inputs of a reference.
-fn fnv1a(h: &mut u64, bytes: &[u8]) {
-    for b in bytes {
-        *h ^= *b as u64;
-        *h = h.wrapping_mul(0x0000_0100_0000_01b3);
-    }
-}
-
 /// Hash of everything a plain path-traced reference depends on in the scene:
 /// the file itself and the content of every mesh (OBJ files included).
 fn scene_hash(path: &Path, scene: &nppp_scene::Scene) -> Result<String> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
-    fnv1a(&mut h, &bytes);
+    let mut h = nppp_scene::hash::Fnv1a::new();
+    h.bytes(&bytes);
     for m in &scene.meshes {
-        fnv1a(&mut h, &nppp_scene::mesh_content_hash(m).to_le_bytes());
+        h.u64(nppp_scene::mesh_content_hash(m));
     }
     for m in &scene.materials {
-        fnv1a(&mut h, &nppp_scene::material_content_hash(m).to_le_bytes());
+        h.u64(nppp_scene::material_content_hash(m));
     }
-    Ok(format!("{h:016x}"))
+    Ok(format!("{:016x}", h.finish()))
 }
 
 /// Renders shorter than this are repeated (same seed, so the same image) and

@@ -11,7 +11,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use nppp_estimator::WriterOptions;
 use nppp_estimator::dataset::MAX_K;
 use nppp_render::datagen::{
-    GenConfig, GenObject, GenStats, default_max_internal_bounces, generate, measure_bvh,
+    GenConfig, GenObject, GenStats, default_max_internal_bounces, generate_shard, measure_bvh,
 };
 use nppp_scene::procedural::Procedural;
 use nppp_scene::{Mesh, Scene, SceneError};
@@ -82,6 +82,12 @@ pub struct GenArgs {
     /// Output data file (written to a temporary file, renamed when complete).
     #[arg(long)]
     pub out: PathBuf,
+    /// Trace only shard I of K (I from 0) of the --rays input rays, in whole
+    /// chunks of 4096 rays: a file of its own that `nppp merge` joins with the
+    /// other shards into the file one run writes, byte for byte (tools/slurm
+    /// runs it as a job array). A shard is also a valid data set of its rays.
+    #[arg(long, value_parser = crate::merge_cmd::parse_shard)]
+    pub shard: Option<crate::merge_cmd::Shard>,
     /// Also measure the bare BVH's closest-hit rate on this mesh and compare.
     #[arg(long)]
     pub measure_bvh: bool,
@@ -116,6 +122,18 @@ pub fn run(a: &GenArgs) -> Result<()> {
         a.out.display()
     );
     nppp_files::check_writable(&a.out).map_err(|e| anyhow!("--out {}: {e}", a.out.display()))?;
+    let shard_rays = match a.shard {
+        Some(sh) => Some(
+            nppp_estimator::shard::shard_rays(
+                sh.index,
+                sh.count,
+                a.rays,
+                WriterOptions::default().chunk_rays,
+            )
+            .map_err(|e| anyhow!("--shard {sh}: {e}"))?,
+        ),
+        None => None,
+    };
     let t0 = Instant::now();
     let (obj, inputs) = load_object(a)?;
     let build = t0.elapsed().as_secs_f64();
@@ -147,8 +165,17 @@ pub fn run(a: &GenArgs) -> Result<()> {
         "gen: sphere centre [{} {} {}] radius {}; {} rays x k = {}, seed {}, cap {} bounces, {threads} threads",
         s.center.x, s.center.y, s.center.z, s.radius, a.rays, a.k, a.seed, max_internal_bounces
     );
+    if let (Some(sh), Some(r)) = (a.shard, &shard_rays) {
+        eprintln!(
+            "gen: shard {sh}: rays {}..{} (merge the shards with `nppp merge`)",
+            r.start, r.end
+        );
+    }
 
-    let bar = progress_bar(a.rays, a.quiet);
+    let bar = progress_bar(
+        shard_rays.as_ref().map_or(a.rays, |r| r.end - r.start),
+        a.quiet,
+    );
     let mut progress = |st: &GenStats| {
         bar.set_position(st.rays);
         bar.set_message(format!(
@@ -162,7 +189,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
         ..WriterOptions::default()
     };
     let cpu0 = process_cpu_seconds();
-    let report = generate(&obj, &cfg, &a.out, options, &mut progress);
+    let report = generate_shard(&obj, &cfg, shard_rays, &a.out, options, &mut progress);
     let gen_cpu = cpu_since(cpu0);
     bar.finish_and_clear();
     let report = report?;

@@ -3,6 +3,7 @@
 
 mod bench_cmd;
 mod gen_cmd;
+mod merge_cmd;
 mod mesh_cmd;
 mod plot;
 mod render_cmd;
@@ -59,6 +60,9 @@ enum Command {
         #[command(flatten)]
         threads: Threads,
     },
+    /// Merge shards (`render --shard`, `gen --shard`) into the file one run
+    /// would have written: render parts into an EXR, data parts into an .nppd.
+    Merge(merge_cmd::MergeArgs),
     /// Write a scene's mesh (e.g. a procedural object) as an OBJ.
     Mesh(mesh_cmd::MeshArgs),
     /// Time against error: PT at M = 1..5 and PT + NPPP at P = 0..3 against a
@@ -192,6 +196,7 @@ fn run(cli: Cli) -> Result<()> {
             print_summary(&r)
         }
         Command::Mesh(a) => mesh_cmd::run(&a),
+        Command::Merge(a) => merge_cmd::run(&a),
         Command::PlotLog(a) => {
             let files = plot::plot_training_log(&a.log, a.out.as_deref())?;
             for f in files {

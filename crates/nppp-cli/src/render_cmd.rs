@@ -21,9 +21,16 @@ pub struct RenderArgs {
     /// Seed of the per-sample random streams (overrides render.seed).
     #[arg(long)]
     pub seed: Option<u64>,
-    /// Output EXR (linear float32 RGB).
+    /// Output EXR (linear float32 RGB); with --shard, the render part (*.nppr).
     #[arg(long, default_value = "out/render.exr")]
     pub out: PathBuf,
+    /// Render only shard I of K (I from 0): every pixel's I-th of K sample
+    /// ranges (contiguous, lengths within one of spp / K), written as a
+    /// render part (--out PART.nppr) of exact per-pixel sums. `nppp merge`
+    /// puts the K parts back together into the EXR this render without
+    /// --shard writes, byte for byte (tools/slurm runs it as a job array).
+    #[arg(long, value_parser = crate::merge_cmd::parse_shard, conflicts_with_all = ["png", "reference"])]
+    pub shard: Option<crate::merge_cmd::Shard>,
     /// Also write an sRGB PNG preview here.
     #[arg(long)]
     pub png: Option<PathBuf>,
@@ -207,11 +214,19 @@ fn check_outputs(a: &RenderArgs, scene: &nppp_scene::Scene) -> Result<()> {
         nppp_files::ensure_not_input("--png", p, &inputs).map_err(anyhow::Error::msg)?;
     }
     let has_ext = crate::has_extension;
-    anyhow::ensure!(
-        has_ext(&a.out, "exr"),
-        "--out {}: the output is an OpenEXR image; name it *.exr",
-        a.out.display()
-    );
+    if a.shard.is_some() {
+        anyhow::ensure!(
+            has_ext(&a.out, "nppr"),
+            "--out {}: with --shard the output is a render part for `nppp merge`; name it *.nppr",
+            a.out.display()
+        );
+    } else {
+        anyhow::ensure!(
+            has_ext(&a.out, "exr"),
+            "--out {}: the output is an OpenEXR image; name it *.exr",
+            a.out.display()
+        );
+    }
     image_io::check_writable(&a.out).context("--out")?;
     if let Some(p) = &a.png {
         anyhow::ensure!(
@@ -294,6 +309,15 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(p) = a.min_bounces {
         settings.estimator_min_bounces = p;
     }
+    if let Some(sh) = a.shard {
+        anyhow::ensure!(
+            sh.count <= settings.spp,
+            "--shard {sh}: {} shards of a {}-spp render would leave some without a sample; use at most {} shards (or more --spp)",
+            sh.count,
+            settings.spp,
+            settings.spp
+        );
+    }
     let has_estimators = scene.instances.iter().any(|i| i.estimator.is_some());
     if has_estimators
         && !matches!(a.estimators, EstimatorChoice::Off | EstimatorChoice::Auto)
@@ -370,6 +394,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     }
     let build = t0.elapsed().as_secs_f64();
     let mut pilot_seconds = 0.0;
+    let mut auto_choices = None;
     if auto && let Some(ests) = rs.estimators.take() {
         let names = estimator_names(&scene, &ests);
         let t = std::time::Instant::now();
@@ -393,6 +418,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         };
         let (chosen, decision) = nppp_render::auto::decide(&mut rs, ests, &pilot);
         rs.estimators = chosen;
+        auto_choices = Some(
+            decision
+                .estimators
+                .iter()
+                .map(|d| format!("{}: {}", names[d.index], nppp_render::auto::label(d.choice)))
+                .collect::<Vec<_>>()
+                .join("; "),
+        );
         pilot_seconds = t.elapsed().as_secs_f64();
         for line in decision.describe(&names) {
             eprintln!("auto: {line}");
@@ -408,6 +441,43 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         seed: settings.seed,
         progress: !a.quiet,
     };
+    if let Some(sh) = a.shard {
+        let samples = nppp_render::render_part::shard_samples(sh.index, sh.count, settings.spp);
+        let (film, stats) = nppp_render::render_film(&rs, &opts, samples.clone());
+        let header = nppp_render::render_part::RenderPartHeader {
+            renderer: nppp_render::render_part::renderer_id(),
+            scene: a.scene.display().to_string(),
+            scene_hash: format!("{:016x}", nppp_scene::scene_content_hash(&scene)),
+            width: scene.camera.width,
+            height: scene.camera.height,
+            spp: settings.spp,
+            seed: settings.seed,
+            max_bounces: settings.max_bounces,
+            samples: [samples.start, samples.end],
+            settings: part_settings(a, &scene, &rs, auto_choices)?,
+            seconds: stats.seconds + pilot_seconds,
+        };
+        nppp_render::render_part::write_part(&a.out, &header, &film)?;
+        eprintln!(
+            "{}: shard {} (samples {}..{} of {}) of {}x{} M {} in {:.2}s (scene build {:.2}s){}",
+            a.out.display(),
+            sh,
+            samples.start,
+            samples.end,
+            settings.spp,
+            header.width,
+            header.height,
+            settings.max_bounces,
+            header.seconds,
+            build,
+            if stats.dropped_samples > 0 {
+                format!(", {} non-finite samples dropped", stats.dropped_samples)
+            } else {
+                String::new()
+            }
+        );
+        return Ok(());
+    }
     let (img, mut stats) = nppp_render::render(&rs, &opts);
     // The pilot is part of the render's time.
     stats.seconds += pilot_seconds;
@@ -492,6 +562,42 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// What a render part's image depends on beyond the scene's content and the
+/// numbers in its header: the estimator options as used, each estimator
+/// file's content, and `auto`'s decision. Parts must agree on all of it.
+fn part_settings(
+    a: &RenderArgs,
+    scene: &nppp_scene::Scene,
+    rs: &RenderScene,
+    auto_choices: Option<String>,
+) -> Result<std::collections::BTreeMap<String, String>> {
+    let mut m = std::collections::BTreeMap::new();
+    m.insert("estimators".into(), format!("{:?}", a.estimators));
+    if let Some(e) = &rs.estimators {
+        m.insert("P".into(), e.min_bounces.to_string());
+        m.insert("entry_nee".into(), format!("{:?}", a.entry_nee));
+        m.insert("latent_lookup".into(), format!("{:?}", a.latent_lookup));
+        m.insert("entry_mask".into(), format!("{:?}", a.entry_mask));
+        m.insert("decoder".into(), format!("{:?}", a.decoder));
+    }
+    if let Some(c) = auto_choices {
+        m.insert("auto".into(), c);
+    }
+    for (i, inst) in scene.instances.iter().enumerate() {
+        if let Some(path) = &inst.estimator {
+            let bytes = std::fs::read(path)
+                .with_context(|| format!("instances[{i}].estimator {}", path.display()))?;
+            let mut h = nppp_scene::hash::Fnv1a::new();
+            h.bytes(&bytes);
+            m.insert(
+                format!("instances[{i}].estimator"),
+                format!("{:016x}", h.finish()),
+            );
+        }
+    }
+    Ok(m)
 }
 
 /// Share of entries above which a repair count means the estimator is

@@ -1349,6 +1349,7 @@ fn tiny_dataset(path: &Path) {
         k: 2,
         seed: 0,
         max_internal_bounces: 8,
+        shard: None,
     };
     let mut wr = DatasetWriter::create_with(
         path,

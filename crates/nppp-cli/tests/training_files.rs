@@ -55,6 +55,7 @@ fn write_data(path: &Path, rays: u32, k: u32) {
         k,
         seed: 0,
         max_internal_bounces: 8,
+        shard: None,
     };
     let mut wr = DatasetWriter::create_with(path, header, WriterOptions::default()).unwrap();
     for i in 0..rays {
@@ -549,6 +550,7 @@ fn a_data_file_that_claims_too_much_is_refused() {
         k,
         seed: 0,
         max_internal_bounces: 8,
+        shard: None,
     };
     let mut wr = DatasetWriter::create_with(&data, header, WriterOptions::default()).unwrap();
     let exit = Exit {

@@ -177,6 +177,7 @@ fn dataset_size() {
             k,
             seed: 7,
             max_internal_bounces: 64,
+            shard: None,
         };
         let path = dir.join(format!("{label}.nppd"));
         let mut rng = SampleRng::from_seed(3);

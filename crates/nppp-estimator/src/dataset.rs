@@ -60,6 +60,11 @@ pub struct DatasetHeader {
     pub seed: u64,
     /// The generator's internal bounce cap; stored bounces saturate here.
     pub max_internal_bounces: u32,
+    /// Set in a shard (`nppp gen --shard`): which of the data set's rays this
+    /// file holds. Absent in a whole data set, whose header is then what it
+    /// always was. A shard is a valid data set of its own rays.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shard: Option<crate::shard::DatasetShard>,
 }
 
 impl DatasetHeader {
@@ -104,6 +109,9 @@ impl DatasetSummary {
 
 #[derive(Debug, Error)]
 pub enum DatasetError {
+    /// Shards that do not make one data set (`nppp merge`).
+    #[error("{0}")]
+    Merge(String),
     // `err`, not `source`: see `EstimatorFileError::Io`.
     #[error("{}: {err}", path.display())]
     Io { path: PathBuf, err: std::io::Error },
@@ -476,9 +484,30 @@ impl DatasetWriter {
         self.cols.push(rec, self.header.max_internal_bounces, self.bounce_width);
         self.rays += 1;
         self.hits += rec.hit as u64;
-        if self.cols.rays >= self.options.chunk_rays || self.cols.bytes() >= CHUNK_TARGET_BYTES {
+        // Chunks end at every multiple of `chunk_rays` rays (and earlier when
+        // large): a shard that starts at such a multiple then chunks its rays
+        // exactly as the whole run does, and shards merge by copying chunks.
+        if self.rays.is_multiple_of(u64::from(self.options.chunk_rays)) || self.cols.bytes() >= CHUNK_TARGET_BYTES {
             self.flush_chunk()?;
         }
+        Ok(())
+    }
+
+    /// Appends a chunk copied from another file of the same data set
+    /// (merging shards). Only between chunks: the rays written so far must
+    /// end at a chunk boundary.
+    pub(crate) fn write_raw_chunk(&mut self, c: &RawChunk) -> Result<(), DatasetError> {
+        let io = |err| DatasetError::Io { path: self.path.clone(), err };
+        if self.cols.rays != 0 {
+            return Err(io(std::io::Error::other("internal: copying a chunk into an open chunk")));
+        }
+        let f = self.file.as_mut().ok_or_else(|| io(std::io::Error::other("writer already finished")))?;
+        f.write_all(&c.bytes).map_err(io)?;
+        self.index.push((self.offset, c.rays, c.hits));
+        self.offset += c.bytes.len() as u64;
+        self.raw_bytes += c.raw_len as u64;
+        self.rays += u64::from(c.rays);
+        self.hits += u64::from(c.hits);
         Ok(())
     }
 
@@ -582,6 +611,14 @@ struct ChunkEntry {
     offset: u64,
     rays: u32,
     hits: u32,
+}
+
+/// A chunk as stored in a file: its header and payload, checked.
+pub(crate) struct RawChunk {
+    pub bytes: Vec<u8>,
+    pub rays: u32,
+    pub hits: u32,
+    pub raw_len: usize,
 }
 
 /// Anything a data file can be read from (a file, or bytes in memory).
@@ -767,6 +804,29 @@ impl DatasetReader {
 
     /// Chunk `i`, read and checked on its own (random access).
     pub fn read_chunk(&mut self, i: usize) -> Result<Vec<RayRecord>, DatasetError> {
+        let c = self.read_raw_chunk(i)?;
+        let offset = self.index[i].offset;
+        let err = |what: String| DatasetError::Chunk { path: self.path.clone(), chunk: i as u64, offset, what };
+        let stored = &c.bytes[CHUNK_HEADER_LEN..];
+        let raw = match le_u32(&c.bytes, 12) {
+            ENC_RAW => stored.to_vec(),
+            ENC_DEFLATE => {
+                let raw = miniz_oxide::inflate::decompress_to_vec_with_limit(stored, c.raw_len)
+                    .map_err(|e| err(format!("cannot inflate: {e}")))?;
+                if raw.len() != c.raw_len {
+                    return Err(err(format!("inflates to {} bytes, header says {}", raw.len(), c.raw_len)));
+                }
+                raw
+            }
+            other => return Err(err(format!("unknown payload encoding {other}"))),
+        };
+        decode_payload(&raw, c.rays, c.hits, self.header.k, bounce_width(self.header.max_internal_bounces)).map_err(err)
+    }
+
+    /// Chunk `i` as stored, its header and payload checked (marker, sizes,
+    /// CRC, counts against the index) but not decoded: what merging shards
+    /// copies, so that the merged file is the single run's byte for byte.
+    pub(crate) fn read_raw_chunk(&mut self, i: usize) -> Result<RawChunk, DatasetError> {
         let e = *self.index.get(i).ok_or_else(|| DatasetError::Index {
             path: self.path.clone(),
             what: format!("no chunk {i} (file has {})", self.index.len()),
@@ -780,14 +840,8 @@ impl DatasetReader {
         if head[..4] != CHUNK_MAGIC {
             return Err(err("no chunk marker (file corrupted)".into()));
         }
-        let (rays, hits, enc, stored_len, raw_len, crc) = (
-            le_u32(&head, 4),
-            le_u32(&head, 8),
-            le_u32(&head, 12),
-            le_u32(&head, 16) as usize,
-            le_u32(&head, 20) as usize,
-            le_u32(&head, 24),
-        );
+        let (rays, hits, stored_len, raw_len, crc) =
+            (le_u32(&head, 4), le_u32(&head, 8), le_u32(&head, 16) as usize, le_u32(&head, 20) as usize, le_u32(&head, 24));
         if stored_len != span - CHUNK_HEADER_LEN {
             return Err(err(format!(
                 "chunk header says {stored_len} payload bytes, {} present before the next chunk",
@@ -798,30 +852,19 @@ impl DatasetReader {
             return Err(err(format!("chunk claims {raw_len} uncompressed bytes (limit {MAX_CHUNK_RAW})")));
         }
         // Bounded by the file's own size (checked against the index above).
-        let mut stored = vec![0u8; stored_len];
-        self.file.read_exact(&mut stored).map_err(|s| err(s.to_string()))?;
+        let mut bytes = vec![0u8; span];
+        bytes[..CHUNK_HEADER_LEN].copy_from_slice(&head);
+        self.file.read_exact(&mut bytes[CHUNK_HEADER_LEN..]).map_err(|s| err(s.to_string()))?;
         let mut h = crc32fast::Hasher::new();
         h.update(&head[4..24]);
-        h.update(&stored);
+        h.update(&bytes[CHUNK_HEADER_LEN..]);
         if h.finalize() != crc {
             return Err(err("checksum mismatch (file corrupted)".into()));
         }
         if rays != e.rays || hits != e.hits {
             return Err(err(format!("chunk says {rays} rays / {hits} hits, index {} / {}", e.rays, e.hits)));
         }
-        let raw = match enc {
-            ENC_RAW => stored,
-            ENC_DEFLATE => {
-                let raw = miniz_oxide::inflate::decompress_to_vec_with_limit(&stored, raw_len)
-                    .map_err(|e| err(format!("cannot inflate: {e}")))?;
-                if raw.len() != raw_len {
-                    return Err(err(format!("inflates to {} bytes, header says {raw_len}", raw.len())));
-                }
-                raw
-            }
-            other => return Err(err(format!("unknown payload encoding {other}"))),
-        };
-        decode_payload(&raw, rays, hits, self.header.k, bounce_width(self.header.max_internal_bounces)).map_err(err)
+        Ok(RawChunk { bytes, rays, hits, raw_len })
     }
 
     /// Every record, from the first chunk (memory: the whole data set).
@@ -874,6 +917,7 @@ mod tests {
             k,
             seed: 1234,
             max_internal_bounces: 64,
+            shard: None,
         }
     }
 

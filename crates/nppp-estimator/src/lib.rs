@@ -11,6 +11,7 @@ pub mod mlp;
 pub mod quant;
 pub mod recipe;
 pub mod sampler;
+pub mod shard;
 
 pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
 pub use dataset::{DatasetError, DatasetHeader, DatasetReader, DatasetSummary, DatasetWriter, RayRecord, WriterOptions};

@@ -9,10 +9,6 @@ use crate::baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
 use crate::exit::{DecodeRepairs, EXIT_FEATURES, Exit};
 use nppp_geom::{Ray, SpherePair};
 
-/// Batches at least this large go through the matrix-product path of
-/// [`EstimatorSampler::forward_batch`].
-pub const GEMM_MIN_ROWS: usize = 16;
-
 pub struct EstimatorSampler {
     baked: BakedEstimator,
     /// The decoder with transposed weights (see [`FastLayer`]).
@@ -197,17 +193,17 @@ impl EstimatorSampler {
     /// with the faster layer order (equal within float rounding). For a
     /// wavefront that fills the decoder inputs itself.
     ///
-    /// Batches of `GEMM_MIN_ROWS` rows or more run each layer as one matrix
-    /// product (`matrixmultiply`, which picks AVX/FMA kernels at run time):
-    /// several times faster than row by row, which the wavefront's batches of
-    /// hundreds of entries can use. Each row's result does not depend on
-    /// the other rows of its batch.
+    /// Each layer runs as one matrix product (`matrixmultiply`, which picks
+    /// AVX/FMA kernels at run time): several times faster than row by row on
+    /// the wavefront's batches of hundreds of entries. Every batch, however
+    /// small, takes this path, so each row's result does not depend on the
+    /// other rows of its batch nor on their number: a render's pixels are
+    /// the same bits however its entries batch up (thread counts, render
+    /// shards that split a tile's samples differently).
     pub fn forward_batch(&self, input: &[f32], output: &mut [f32]) {
         let n = self.latent_dim + self.noise_dim;
         let rows = (input.len() / n).min(output.len() / EXIT_FEATURES);
-        if rows < GEMM_MIN_ROWS {
-            let mut scratch = SamplerScratch::new(self);
-            self.forward_batch_with(input, output, &mut scratch);
+        if rows == 0 {
             return;
         }
         let width = self.layers.iter().map(|l| l.outputs).max().unwrap_or(0).max(n);
@@ -324,7 +320,7 @@ mod tests {
         let input: Vec<f32> = (0..rows * n).map(|k| ((k * 37 % 29) as f32 - 14.0) / 6.0).collect();
         let mut all = vec![0.0f32; rows * EXIT_FEATURES];
         s.forward_batch(&input, &mut all);
-        for (lo, hi) in [(10, 40), (0, 16), (47, 64)] {
+        for (lo, hi) in [(10, 40), (0, 16), (47, 64), (0, 1), (5, 8), (63, 64)] {
             let mut part = vec![0.0f32; (hi - lo) * EXIT_FEATURES];
             s.forward_batch(&input[lo * n..hi * n], &mut part);
             assert_eq!(part, all[lo * EXIT_FEATURES..hi * EXIT_FEATURES], "rows {lo}..{hi}");

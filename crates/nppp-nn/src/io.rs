@@ -30,6 +30,7 @@ pub fn synthetic_header(name: &str, k: usize) -> DatasetInfo {
         k: k as u32,
         seed: 0,
         max_internal_bounces: 64,
+        shard: None,
     }
 }
 

@@ -171,6 +171,7 @@ impl GenObject {
             k: cfg.k,
             seed: cfg.seed,
             max_internal_bounces: cfg.max_internal_bounces,
+            shard: None,
         }
     }
 }
@@ -401,9 +402,43 @@ pub fn generate(
     options: WriterOptions,
     progress: &mut (dyn FnMut(&GenStats) + Send),
 ) -> Result<GenReport, GenError> {
+    generate_shard(obj, cfg, None, out, options, progress)
+}
+
+/// [`generate`] for the input rays `shard` of the data set `cfg` describes
+/// (all of them if `None`): the file is a shard (its header says which
+/// rays) that `nppp merge` joins with the others into the file [`generate`]
+/// writes. A shard starts at a multiple of `options.chunk_rays`
+/// ([`nppp_estimator::shard::shard_rays`] makes such ranges).
+pub fn generate_shard(
+    obj: &GenObject,
+    cfg: &GenConfig,
+    shard: Option<Range<u64>>,
+    out: &Path,
+    options: WriterOptions,
+    progress: &mut (dyn FnMut(&GenStats) + Send),
+) -> Result<GenReport, GenError> {
     cfg.validate()?;
     let tracer = obj.tracer(cfg.max_internal_bounces);
-    let mut writer = DatasetWriter::create_with(out, obj.header(cfg), options)?;
+    let mut header = obj.header(cfg);
+    let rays = shard.clone().unwrap_or(0..cfg.rays);
+    if let Some(r) = &shard {
+        let chunk = u64::from(options.chunk_rays.max(1));
+        if !(r.start < r.end && r.end <= cfg.rays && r.start.is_multiple_of(chunk)) {
+            return Err(GenError::Config(format!(
+                "shard rays {}..{} are not a range of whole {chunk}-ray chunks of 0..{}",
+                r.start, r.end, cfg.rays
+            )));
+        }
+        header.shard = Some(nppp_estimator::shard::DatasetShard {
+            first_ray: r.start,
+            end_ray: r.end,
+            rays: cfg.rays,
+            chunk_rays: options.chunk_rays,
+            compress: options.compress,
+        });
+    }
+    let mut writer = DatasetWriter::create_with(out, header, options)?;
     let t0 = Instant::now();
     let batch = batch_rays(cfg.k);
     let mut stats = GenStats::default();
@@ -416,10 +451,10 @@ pub fn generate(
         progress(stats);
         Ok(())
     };
-    let mut start = 0u64;
+    let mut start = rays.start;
     let mut pending: Vec<RayRecord> = Vec::new();
-    while start < cfg.rays {
-        let end = (start + batch).min(cfg.rays);
+    while start < rays.end {
+        let end = (start + batch).min(rays.end);
         let (written, next) = rayon::join(
             || write(std::mem::take(&mut pending), &mut stats),
             || trace_rays(&tracer, cfg.seed, start..end, cfg.k),

@@ -19,6 +19,7 @@
 use crate::accel::SceneHit;
 use crate::bsdf::Bsdf;
 use crate::estimator::{EntryBatch, EntryNee, EstimatorStats, Meet, SkippedVertices};
+use crate::film::PixelSum;
 use crate::medium::HeroChannel;
 use crate::scene_data::{RenderScene, SurfaceKind};
 use glam::{Vec2, Vec3};
@@ -96,41 +97,6 @@ impl PathState {
             skip_instance: crate::accel::NO_SKIP,
             medium: None,
         }
-    }
-}
-
-/// Per-pixel accumulation in f64 so that very high sample counts do not drift.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct PixelSum {
-    pub sum: [f64; 3],
-    pub valid: u32,
-    /// Samples dropped because they went non-finite.
-    pub dropped: u32,
-}
-
-impl PixelSum {
-    #[inline]
-    pub fn add(&mut self, l: Vec3) {
-        if l.is_finite() {
-            self.sum[0] += l.x as f64;
-            self.sum[1] += l.y as f64;
-            self.sum[2] += l.z as f64;
-            self.valid += 1;
-        } else {
-            self.dropped += 1;
-        }
-    }
-
-    pub fn mean(&self) -> [f32; 3] {
-        if self.valid == 0 {
-            return [0.0; 3];
-        }
-        let n = self.valid as f64;
-        [
-            (self.sum[0] / n) as f32,
-            (self.sum[1] / n) as f32,
-            (self.sum[2] / n) as f32,
-        ]
     }
 }
 

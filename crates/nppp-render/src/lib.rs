@@ -11,6 +11,7 @@ pub mod bvh4;
 pub mod camera;
 pub mod datagen;
 pub mod estimator;
+pub mod film;
 pub mod image_io;
 pub mod integrator;
 pub mod lights;
@@ -18,8 +19,9 @@ pub mod medium;
 pub mod metrics;
 pub mod object_walk;
 pub mod render;
+pub mod render_part;
 pub mod scene_data;
 
 pub use image_io::Image;
-pub use render::{RenderOptions, RenderStats, render};
+pub use render::{RenderOptions, RenderStats, render, render_film};
 pub use scene_data::RenderScene;

@@ -2,12 +2,14 @@
 //! a progress bar on stderr, and the statistics a user needs to trust the image.
 
 use crate::estimator::EstimatorStats;
+use crate::film::PixelSum;
 use crate::image_io::Image;
-use crate::integrator::{IntegratorSettings, PathState, PixelSum, Wavefront, WorkCounts, jitter};
+use crate::integrator::{IntegratorSettings, PathState, Wavefront, WorkCounts, jitter};
 use crate::scene_data::RenderScene;
 use indicatif::{ProgressBar, ProgressDrawTarget};
 use nppp_geom::SampleRng;
 use rayon::prelude::*;
+use std::ops::Range;
 use std::time::{Duration, Instant};
 
 pub const TILE: u32 = 16;
@@ -45,12 +47,42 @@ impl RenderStats {
 /// The image is split into bands of `TILE` rows; each band's tiles render in
 /// parallel and their means go straight into the band, so the only
 /// full-resolution buffer is the f32 image itself (12 bytes per pixel: 3.2 GB
-/// at the largest allowed 16384 x 16384), never a full-resolution f64 film.
+/// at the largest allowed 16384 x 16384), never a full-resolution film of sums.
 ///
 /// Panics if estimators are attached to a scene built by
 /// [`RenderScene::new`]: their instances were merged into the world BLAS and
 /// the estimators would silently never be used.
 pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats) {
+    let mut img = Image::new(scene.camera.width, scene.camera.height);
+    let stats = render_into(scene, opts, 0..opts.spp, &mut img.pixels, PixelSum::mean);
+    (img, stats)
+}
+
+/// Renders samples `samples` (of `0..opts.spp`) of every pixel and returns
+/// the film: each pixel's exact sums, row-major. Films of disjoint sample
+/// ranges merge ([`PixelSum::merge`]) into exactly the film of their union,
+/// so their means are bit for bit those of [`render`] (`nppp render
+/// --shard`). The film takes 104 bytes per pixel.
+pub fn render_film(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    samples: Range<u32>,
+) -> (Vec<PixelSum>, RenderStats) {
+    let (w, h) = (scene.camera.width, scene.camera.height);
+    let mut film = vec![PixelSum::default(); w as usize * h as usize];
+    let stats = render_into(scene, opts, samples, &mut film, |p| *p);
+    (film, stats)
+}
+
+/// Renders samples `samples` of every pixel into `out` (row-major), each
+/// pixel's accumulated samples turned into an output value by `finish`.
+fn render_into<T: Send>(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    samples: Range<u32>,
+    out: &mut [T],
+    finish: impl Fn(&PixelSum) -> T + Sync,
+) -> RenderStats {
     if let Some(e) = &scene.estimators {
         let merged = e
             .per_instance
@@ -64,7 +96,9 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
         );
     }
     let (w, h) = (scene.camera.width, scene.camera.height);
-    let total = w as u64 * h as u64 * opts.spp as u64;
+    assert_eq!(out.len(), w as usize * h as usize, "output size");
+    let samples = samples.start.min(opts.spp)..samples.end.min(opts.spp);
+    let total = w as u64 * h as u64 * samples.len() as u64;
     let bar = if opts.progress {
         ProgressBar::new(total)
     } else {
@@ -85,10 +119,8 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
         seed: opts.seed,
     };
     let start = Instant::now();
-    let mut img = Image::new(w, h);
     let band_len = (w * TILE) as usize;
-    let (dropped, (est, work)) = img
-        .pixels
+    let (dropped, (est, work)) = out
         .par_chunks_mut(band_len)
         .enumerate()
         .map(|(band, band_pixels)| {
@@ -100,7 +132,16 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
                 .map_init(Wavefront::default, |wf, tx| {
                     let x0 = tx * TILE;
                     let tw = TILE.min(w - x0);
-                    let film = render_tile(scene, opts, &settings, wf, (x0, y0), (tw, th), &bar);
+                    let film = render_tile(
+                        scene,
+                        opts,
+                        &settings,
+                        samples.clone(),
+                        wf,
+                        (x0, y0),
+                        (tw, th),
+                        &bar,
+                    );
                     (x0, film, wf.estimator_stats, wf.work)
                 })
                 .collect();
@@ -113,7 +154,7 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
                 let tw = TILE.min(w - x0);
                 for (i, p) in film.iter().enumerate() {
                     let (x, y) = (x0 + i as u32 % tw, i as u32 / tw);
-                    band_pixels[(y * w + x) as usize] = p.mean();
+                    band_pixels[(y * w + x) as usize] = finish(p);
                     dropped += p.dropped as u64;
                 }
             }
@@ -128,24 +169,25 @@ pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats)
             },
         );
     bar.finish_and_clear();
-    let seconds = start.elapsed().as_secs_f64();
-    (
-        img,
-        RenderStats {
-            seconds,
-            samples: total,
-            dropped_samples: dropped,
-            estimators: est,
-            work,
-        },
-    )
+    RenderStats {
+        seconds: start.elapsed().as_secs_f64(),
+        samples: total,
+        dropped_samples: dropped,
+        estimators: est,
+        work,
+    }
 }
 
-/// All samples of one tile, in wavefront batches of about `BATCH_PATHS` paths.
+/// Samples `samples` of one tile, in wavefront batches of about
+/// `BATCH_PATHS` paths. Batches start at multiples of their sample count, so
+/// a sample range that starts there (every shard of a render that is not cut
+/// inside a batch) batches its paths exactly as the whole render does.
+#[allow(clippy::too_many_arguments)]
 fn render_tile(
     scene: &RenderScene,
     opts: &RenderOptions,
     settings: &IntegratorSettings,
+    samples: Range<u32>,
     wf: &mut Wavefront,
     (x0, y0): (u32, u32),
     (tw, th): (u32, u32),
@@ -157,9 +199,9 @@ fn render_tile(
     wf.work = WorkCounts::default();
     let px = (tw * th) as usize;
     let spp_per_batch = (BATCH_PATHS / px).max(1) as u32;
-    let mut s0 = 0;
-    while s0 < opts.spp {
-        let s1 = (s0 + spp_per_batch).min(opts.spp);
+    let mut s0 = samples.start;
+    while s0 < samples.end {
+        let s1 = ((s0 / spp_per_batch + 1) * spp_per_batch).min(samples.end);
         wf.paths.clear();
         for y in 0..th {
             for x in 0..tw {

@@ -7,7 +7,7 @@
 
 mod common;
 use common::*;
-use nppp_render::integrator::PixelSum;
+use nppp_render::film::PixelSum;
 use nppp_render::{Image, RenderOptions, RenderScene, RenderStats};
 use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
@@ -282,7 +282,7 @@ fn radiance_near_f32_max_scales_the_image_linearly() {
 /// so this is checked on the film directly.)
 #[test]
 fn non_finite_samples_are_dropped_and_counted() {
-    let mut px = nppp_render::integrator::PixelSum::default();
+    let mut px = nppp_render::film::PixelSum::default();
     px.add(glam::Vec3::splat(2.0));
     px.add(glam::Vec3::new(f32::INFINITY, 1.0, 1.0));
     px.add(glam::Vec3::new(1.0, f32::NAN, 1.0));

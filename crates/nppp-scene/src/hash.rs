@@ -9,34 +9,45 @@
 //! f32 values are hashed by their IEEE bits (so `-0.0` and `0.0` differ,
 //! which is fine for an exact-identity check), counts as u64, indices as u32.
 
-use crate::{Material, Mesh};
+use crate::{Material, Mesh, Scene};
 use glam::Vec3;
 
 const FNV_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
 const FNV_PRIME: u64 = 0x0000_0100_0000_01b3;
 
-struct Fnv1a(u64);
+/// FNV-1a 64, the project's one stable hash (content hashes here, the
+/// bench's reference cache, render parts' estimator files).
+pub struct Fnv1a(u64);
+
+impl Default for Fnv1a {
+    fn default() -> Self {
+        Self::new()
+    }
+}
 
 impl Fnv1a {
-    fn new() -> Self {
+    pub fn new() -> Self {
         Fnv1a(FNV_OFFSET)
     }
-    fn bytes(&mut self, bytes: &[u8]) {
+    pub fn finish(&self) -> u64 {
+        self.0
+    }
+    pub fn bytes(&mut self, bytes: &[u8]) {
         for &b in bytes {
             self.0 ^= u64::from(b);
             self.0 = self.0.wrapping_mul(FNV_PRIME);
         }
     }
-    fn u32(&mut self, x: u32) {
+    pub fn u32(&mut self, x: u32) {
         self.bytes(&x.to_le_bytes());
     }
-    fn u64(&mut self, x: u64) {
+    pub fn u64(&mut self, x: u64) {
         self.bytes(&x.to_le_bytes());
     }
-    fn f32(&mut self, x: f32) {
+    pub fn f32(&mut self, x: f32) {
         self.u32(x.to_bits());
     }
-    fn vec3(&mut self, v: Vec3) {
+    pub fn vec3(&mut self, v: Vec3) {
         self.f32(v.x);
         self.f32(v.y);
         self.f32(v.z);
@@ -116,6 +127,43 @@ pub fn material_content_hash(m: &Material) -> u64 {
             h.vec3(sigma_a);
             h.f32(g);
         }
+    }
+    h.0
+}
+
+/// Hash of what a scene renders, names and file paths aside: the camera
+/// (with its image size), every material and mesh by content, and every
+/// instance (mesh and material indices, transform bits, whether it has an
+/// estimator; the estimator files are hashed by whoever loads them). Render
+/// settings (spp, M, seed, P) are not included: a render records those
+/// itself. Two render parts of one image must agree on it.
+pub fn scene_content_hash(scene: &Scene) -> u64 {
+    let mut h = Fnv1a::new();
+    let c = &scene.camera;
+    h.vec3(c.position);
+    h.vec3(c.look_at);
+    h.vec3(c.up);
+    h.f32(c.fov_y_deg);
+    h.u32(c.width);
+    h.u32(c.height);
+    h.u64(scene.materials.len() as u64);
+    for m in &scene.materials {
+        h.u64(material_content_hash(m));
+    }
+    h.u64(scene.meshes.len() as u64);
+    for m in &scene.meshes {
+        h.u64(mesh_content_hash(m));
+    }
+    h.u64(scene.instances.len() as u64);
+    for i in &scene.instances {
+        h.u32(i.mesh as u32);
+        h.u32(i.material as u32);
+        h.f32(i.transform.scale);
+        for x in i.transform.rotation.to_array() {
+            h.f32(x);
+        }
+        h.vec3(i.transform.translation);
+        h.bytes(&[i.estimator.is_some() as u8]);
     }
     h.0
 }
