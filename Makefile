@@ -48,12 +48,13 @@ TRAIN_STEPS_jade := --steps 10000
 TRAIN_FLAGS ?= --seed 1 --minutes 0 $(TRAIN_STEPS_$(OBJECT))
 BAKE_FLAGS ?= --latent-grid 32 --bits 4 --mask-grid 64 --mask-bits 4
 
-.PHONY: all build render test test-wgpu bench clean help data train bake speed
+.PHONY: all build render test test-wgpu test-cluster bench clean help data train bake speed
 all: render
 
 help:
 	@echo "make render   build, then render $(SCENE) to $(OUT)/ (EXR + PNG)"
 	@echo "make test     run the test suite"
+	@echo "make test-cluster  shards on a one-node Slurm cluster (installs slurm-wlm, munge)"
 	@echo "make bench    nppp bench --quick (time vs error) and criterion micro-benchmarks"
 
 # The renderer is built for this machine's CPU (as Mitsuba's LLVM variant
@@ -113,6 +114,13 @@ ifneq ($(strip $(VULKAN_ICDS))$(VK_ICD_FILENAMES)$(VK_DRIVER_FILES),)
 else
 	@echo "test-wgpu: skipped, no Vulkan driver installed (apt install mesa-vulkan-drivers)"
 endif
+
+# Shards on a real Slurm (not part of `make test`; needs root or sudo):
+# installs slurm-wlm and munge, starts a one-node cluster on loopback, runs
+# tools/slurm/submit.sh for a render and a data set, checks the merged files
+# against single-machine runs byte for byte, shuts the cluster down.
+test-cluster: build
+	NPPP=$(NPPP) tools/slurm/test-cluster.sh
 
 # Run time against error on the benchmark scenes (see BENCHMARKS.md), then
 # the criterion micro-benchmarks.

@@ -1,5 +1,5 @@
 //! The estimator's data and runtime, free of any training stack: the exit
-//! sample and its learning transform, the training-data file, the baked
+//! sample and its learning transform, the training-data file and its shards, the baked
 //! `.nppp` file (quantized 4D latent and mask grids plus decoder weights) and
 //! the CPU sampler the renderer calls.
 

@@ -2,7 +2,9 @@
 //! integrator, estimator integration (queries, batched answers, next-event
 //! estimation through an estimator, the `auto` pilot), homogeneous media
 //! inside translucent objects, object walks
-//! (training data and the oracle), error metrics, and image output.
+//! (training data and the oracle), the exact film and render parts (a render
+//! split by sample range over machines, merged bit for bit), error metrics,
+//! and image output.
 
 pub mod accel;
 pub mod auto;

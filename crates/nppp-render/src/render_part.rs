@@ -9,7 +9,7 @@
 //! [`merge_parts`] can refuse parts of different renders, and which samples
 //! it holds, so it can refuse a merge with a range missing or twice.
 //!
-//! File layout (little-endian; docs/render-parts.md):
+//! File layout (little-endian; docs/shards.md):
 //! magic `NPPPRPT\0`, u32 version, u32 header length, header JSON
 //! ([`RenderPartHeader`]), u32 CRC-32 of version, length and JSON; then u64
 //! payload length as stored, u64 raw length, the payload (deflate), u32
