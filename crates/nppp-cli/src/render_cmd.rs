@@ -310,6 +310,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         settings.estimator_min_bounces = p;
     }
     if let Some(sh) = a.shard {
+        check_film_memory(scene.camera.width, scene.camera.height)?;
         anyhow::ensure!(
             sh.count <= settings.spp,
             "--shard {sh}: {} shards of a {}-spp render would leave some without a sample; use at most {} shards (or more --spp)",
@@ -559,6 +560,27 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             e.mape,
             e.rmse,
             stats.seconds
+        );
+    }
+    Ok(())
+}
+
+/// A render part holds its film in memory twice over while it is written
+/// (the sums and their serialized columns): refused before rendering when
+/// that cannot fit, instead of failing at the end of the render.
+pub fn check_film_memory(width: u32, height: u32) -> Result<()> {
+    let need = u64::from(width)
+        * u64::from(height)
+        * (2 * nppp_render::render_part::PART_BYTES_PER_PIXEL + 12);
+    if let Some(avail) = nppp_files::available_memory()
+        && need > avail
+    {
+        bail!(
+            "a render part of {width}x{height} needs about {} of memory for its film ({} bytes \
+             per pixel, twice), {} is available: render a smaller image or on a larger machine",
+            nppp_files::format_bytes(need),
+            nppp_render::render_part::PART_BYTES_PER_PIXEL,
+            nppp_files::format_bytes(avail)
         );
     }
     Ok(())

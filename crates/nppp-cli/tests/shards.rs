@@ -12,7 +12,9 @@ mod common;
 use common::{nppp, stderr};
 
 fn repo(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(rel)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join(rel)
 }
 
 fn scratch(name: &str) -> PathBuf {
@@ -65,7 +67,10 @@ fn render_parts(dir: &Path, scene: &Path, flags: &[&str], k: u32, tag: &str) -> 
     let mut parts: Vec<PathBuf> = (0..k)
         .map(|i| {
             let p = dir.join(format!("{tag}-{i}-of-{k}.nppr"));
-            assert_ok(&format!("shard {i}/{k}"), &render(scene, flags, &p, Some((i, k))));
+            assert_ok(
+                &format!("shard {i}/{k}"),
+                &render(scene, flags, &p, Some((i, k))),
+            );
             p
         })
         .collect();
@@ -78,7 +83,10 @@ fn render_shards_merge_into_the_same_bytes() {
     let dir = scratch("render");
     let cases: [(&str, &[&str]); 3] = [
         // The network at P = 1: decoder batches of every size.
-        ("data/scenes/cornell-box.json", &["--estimators", "neural", "--min-bounces", "1"]),
+        (
+            "data/scenes/cornell-box.json",
+            &["--estimators", "neural", "--min-bounces", "1"],
+        ),
         // auto's pilot runs in every shard and decides the same.
         ("data/scenes/cornell-jade.json", &[]),
         ("data/scenes/cornell-glass.json", &["--estimators", "off"]),
@@ -114,7 +122,12 @@ fn merge_writes_the_same_preview() {
     let (mexr, mpng) = (dir.join("merged.exr"), dir.join("merged.png"));
     let mut args: Vec<OsString> = vec!["merge".into()];
     args.extend(parts.iter().map(OsString::from));
-    args.extend(["--out".into(), mexr.clone().into(), "--png".into(), mpng.clone().into()]);
+    args.extend([
+        "--out".into(),
+        mexr.clone().into(),
+        "--png".into(),
+        mpng.clone().into(),
+    ]);
     assert_ok("merge --png", &nppp(args));
     assert!(std::fs::read(&mexr).unwrap() == std::fs::read(&exr).unwrap());
     assert!(std::fs::read(&mpng).unwrap() == std::fs::read(&png).unwrap());
@@ -134,22 +147,63 @@ fn merge_refuses_parts_of_other_renders_and_gaps() {
     let p1 = part("p1.nppr", &off, (1, 3));
     let p2 = part("p2.nppr", &off, (2, 3));
     let half0 = part("half0.nppr", &off, (0, 2));
-    let seed9 = part("seed9.nppr", &["--estimators", "off", "--seed", "9"], (1, 3));
-    let m4 = part("m4.nppr", &["--estimators", "off", "--max-bounces", "4"], (1, 3));
+    let seed9 = part(
+        "seed9.nppr",
+        &["--estimators", "off", "--seed", "9"],
+        (1, 3),
+    );
+    let m4 = part(
+        "m4.nppr",
+        &["--estimators", "off", "--max-bounces", "4"],
+        (1, 3),
+    );
     let other_scene = dir.join("other.nppr");
     assert_ok(
         "other scene",
-        &render(&repo("data/scenes/cornell-box.json"), &off, &other_scene, Some((1, 3))),
+        &render(
+            &repo("data/scenes/cornell-box.json"),
+            &off,
+            &other_scene,
+            Some((1, 3)),
+        ),
     );
     let out = dir.join("out.exr");
     let cases: Vec<(&str, Vec<PathBuf>, Vec<&str>)> = vec![
-        ("a missing part", vec![p0.clone(), p2.clone()], vec!["samples 2..4", "in no part"]),
-        ("no last part", vec![p0.clone(), p1.clone()], vec!["samples 4..6", "in no part"]),
-        ("overlapping parts", vec![p0.clone(), half0.clone(), p1.clone(), p2.clone()], vec!["overlap", "half0.nppr"]),
-        ("another seed", vec![p0.clone(), seed9.clone(), p2.clone()], vec!["seed9.nppr", "seed 9"]),
-        ("another M", vec![p0.clone(), m4.clone(), p2.clone()], vec!["m4.nppr", "M (max bounces) 4"]),
-        ("another scene", vec![p0.clone(), other_scene.clone(), p2.clone()], vec!["other.nppr", "scene content"]),
-        ("a part twice", vec![p0.clone(), p1.clone(), p1.clone(), p2.clone()], vec!["named twice"]),
+        (
+            "a missing part",
+            vec![p0.clone(), p2.clone()],
+            vec!["samples 2..4", "in no part"],
+        ),
+        (
+            "no last part",
+            vec![p0.clone(), p1.clone()],
+            vec!["samples 4..6", "in no part"],
+        ),
+        (
+            "overlapping parts",
+            vec![p0.clone(), half0.clone(), p1.clone(), p2.clone()],
+            vec!["overlap", "half0.nppr"],
+        ),
+        (
+            "another seed",
+            vec![p0.clone(), seed9.clone(), p2.clone()],
+            vec!["seed9.nppr", "seed 9"],
+        ),
+        (
+            "another M",
+            vec![p0.clone(), m4.clone(), p2.clone()],
+            vec!["m4.nppr", "M (max bounces) 4"],
+        ),
+        (
+            "another scene",
+            vec![p0.clone(), other_scene.clone(), p2.clone()],
+            vec!["other.nppr", "scene content"],
+        ),
+        (
+            "a part twice",
+            vec![p0.clone(), p1.clone(), p1.clone(), p2.clone()],
+            vec!["named twice"],
+        ),
     ];
     for (what, parts, needles) in cases {
         assert_refused(what, &merge(&parts, &out), 1, &needles);
@@ -158,21 +212,37 @@ fn merge_refuses_parts_of_other_renders_and_gaps() {
     // Damaged files, each named.
     let bytes = std::fs::read(&p1).unwrap();
     let damaged: [(&str, Vec<u8>, &str); 5] = [
-        ("truncated.nppr", bytes[..bytes.len() - 100].to_vec(), "truncated"),
+        (
+            "truncated.nppr",
+            bytes[..bytes.len() - 100].to_vec(),
+            "truncated",
+        ),
         ("header-only.nppr", bytes[..40].to_vec(), "truncated"),
-        ("flipped.nppr", {
-            let mut b = bytes.clone();
-            let n = b.len();
-            b[n - 50] ^= 0x40;
-            b
-        }, "checksum"),
-        ("version2.nppr", {
-            let mut b = bytes.clone();
-            b[8] = 2;
-            b
-        }, "version 2"),
+        (
+            "flipped.nppr",
+            {
+                let mut b = bytes.clone();
+                let n = b.len();
+                b[n - 50] ^= 0x40;
+                b
+            },
+            "checksum",
+        ),
+        (
+            "version2.nppr",
+            {
+                let mut b = bytes.clone();
+                b[8] = 2;
+                b
+            },
+            "version 2",
+        ),
         // An OpenEXR file's magic number, then anything.
-        ("image.nppr", b"\x76\x2f\x31\x01 not a part".to_vec(), "not an nppp render part"),
+        (
+            "image.nppr",
+            b"\x76\x2f\x31\x01 not a part".to_vec(),
+            "not an nppp render part",
+        ),
     ];
     for (name, b, needle) in damaged {
         let p = dir.join(name);
@@ -182,8 +252,18 @@ fn merge_refuses_parts_of_other_renders_and_gaps() {
         assert!(!out.exists(), "{name}: an image was written");
     }
     // A part cannot be the output, and the output must be an image or data.
-    assert_refused("out is a part", &merge(&[p0.clone(), p1.clone(), p2.clone()], &p1), 1, &["is one of the parts"]);
-    assert_refused("out .png", &merge(&[p0, p1, p2], &dir.join("x.png")), 1, &["*.exr", "*.nppd"]);
+    assert_refused(
+        "out is a part",
+        &merge(&[p0.clone(), p1.clone(), p2.clone()], &p1),
+        1,
+        &["is one of the parts"],
+    );
+    assert_refused(
+        "out .png",
+        &merge(&[p0, p1, p2], &dir.join("x.png")),
+        1,
+        &["*.exr", "*.nppd"],
+    );
 }
 
 #[test]
@@ -192,14 +272,49 @@ fn shard_flags_are_checked_before_rendering() {
     let scene = repo("data/scenes/cornell-glass.json");
     let part = dir.join("p.nppr");
     let cases: [(&str, Vec<&str>, PathBuf, i32, Vec<&str>); 5] = [
-        ("I = K", vec!["--shard", "6/6"], part.clone(), 2, vec!["0 to 5"]),
-        ("K > spp", vec!["--shard", "0/7"], part.clone(), 1, vec!["at most 6 shards"]),
-        ("not I/K", vec!["--shard", "two"], part.clone(), 2, vec!["I/K"]),
-        ("an EXR name", vec!["--shard", "0/2"], dir.join("p.exr"), 1, vec!["*.nppr"]),
-        ("with --png", vec!["--shard", "0/2", "--png", "x.png"], part.clone(), 2, vec!["--png"]),
+        (
+            "I = K",
+            vec!["--shard", "6/6"],
+            part.clone(),
+            2,
+            vec!["0 to 5"],
+        ),
+        (
+            "K > spp",
+            vec!["--shard", "0/7"],
+            part.clone(),
+            1,
+            vec!["at most 6 shards"],
+        ),
+        (
+            "not I/K",
+            vec!["--shard", "two"],
+            part.clone(),
+            2,
+            vec!["I/K"],
+        ),
+        (
+            "an EXR name",
+            vec!["--shard", "0/2"],
+            dir.join("p.exr"),
+            1,
+            vec!["*.nppr"],
+        ),
+        (
+            "with --png",
+            vec!["--shard", "0/2", "--png", "x.png"],
+            part.clone(),
+            2,
+            vec!["--png"],
+        ),
     ];
     for (what, flags, out, code, needles) in cases {
-        let mut args: Vec<OsString> = vec!["render".into(), scene.clone().into(), "--spp".into(), "6".into()];
+        let mut args: Vec<OsString> = vec![
+            "render".into(),
+            scene.clone().into(),
+            "--spp".into(),
+            "6".into(),
+        ];
         args.extend(flags.iter().map(OsString::from));
         args.extend(["--out".into(), out.clone().into()]);
         assert_refused(what, &nppp(args), code, &needles);
@@ -208,11 +323,24 @@ fn shard_flags_are_checked_before_rendering() {
 }
 
 /// `nppp gen --mesh builtin --material white --rays 9000 --k 2 --seed 5 --out OUT [--shard I/K]`.
-fn gen(out: &Path, seed: &str, shard: Option<&str>) -> Output {
-    let mut args: Vec<OsString> = ["gen", "--mesh", "builtin", "--material", "white", "--rays", "9000", "--k", "2", "--quiet", "--seed", seed]
-        .iter()
-        .map(OsString::from)
-        .collect();
+fn gen_data(out: &Path, seed: &str, shard: Option<&str>) -> Output {
+    let mut args: Vec<OsString> = [
+        "gen",
+        "--mesh",
+        "builtin",
+        "--material",
+        "white",
+        "--rays",
+        "9000",
+        "--k",
+        "2",
+        "--quiet",
+        "--seed",
+        seed,
+    ]
+    .iter()
+    .map(OsString::from)
+    .collect();
     args.extend(["--out".into(), out.into()]);
     if let Some(s) = shard {
         args.extend(["--shard".into(), s.into()]);
@@ -224,26 +352,29 @@ fn gen(out: &Path, seed: &str, shard: Option<&str>) -> Output {
 fn data_shards_merge_into_the_same_bytes() {
     let dir = scratch("gen");
     let whole = dir.join("whole.nppd");
-    assert_ok("gen", &gen(&whole, "5", None));
+    assert_ok("gen", &gen_data(&whole, "5", None));
     // 9000 rays are 3 chunks of 4096: at most 3 shards.
     let parts: Vec<PathBuf> = ["2/3", "0/3", "1/3"]
         .iter()
         .enumerate()
         .map(|(i, s)| {
             let p = dir.join(format!("part{i}.nppd"));
-            assert_ok(s, &gen(&p, "5", Some(s)));
+            assert_ok(s, &gen_data(&p, "5", Some(s)));
             p
         })
         .collect();
     let merged = dir.join("merged.nppd");
     assert_ok("merge", &merge(&parts, &merged));
-    assert!(std::fs::read(&merged).unwrap() == std::fs::read(&whole).unwrap(), "merged data differ");
+    assert!(
+        std::fs::read(&merged).unwrap() == std::fs::read(&whole).unwrap(),
+        "merged data differ"
+    );
     let halves: Vec<PathBuf> = ["0/2", "1/2"]
         .iter()
         .enumerate()
         .map(|(i, s)| {
             let p = dir.join(format!("half{i}.nppd"));
-            assert_ok(s, &gen(&p, "5", Some(s)));
+            assert_ok(s, &gen_data(&p, "5", Some(s)));
             p
         })
         .collect();
@@ -253,17 +384,43 @@ fn data_shards_merge_into_the_same_bytes() {
 
     let out = dir.join("out.nppd");
     let seed6 = dir.join("seed6.nppd");
-    assert_ok("seed 6", &gen(&seed6, "6", Some("1/3")));
+    assert_ok("seed 6", &gen_data(&seed6, "6", Some("1/3")));
     let cases: Vec<(&str, Vec<PathBuf>, Vec<&str>)> = vec![
-        ("a missing shard", vec![parts[0].clone(), parts[1].clone()], vec!["rays 4096..8192", "in no part"]),
-        ("another seed", vec![parts[0].clone(), parts[1].clone(), seed6], vec!["seed6.nppd", "seed 6"]),
-        ("overlap", vec![parts[0].clone(), parts[1].clone(), parts[2].clone(), halves[1].clone()], vec!["overlap"]),
-        ("a whole data set", vec![whole.clone(), parts[0].clone()], vec!["whole.nppd", "not a shard"]),
+        (
+            "a missing shard",
+            vec![parts[0].clone(), parts[1].clone()],
+            vec!["rays 4096..8192", "in no part"],
+        ),
+        (
+            "another seed",
+            vec![parts[0].clone(), parts[1].clone(), seed6],
+            vec!["seed6.nppd", "seed 6"],
+        ),
+        (
+            "overlap",
+            vec![
+                parts[0].clone(),
+                parts[1].clone(),
+                parts[2].clone(),
+                halves[1].clone(),
+            ],
+            vec!["overlap"],
+        ),
+        (
+            "a whole data set",
+            vec![whole.clone(), parts[0].clone()],
+            vec!["whole.nppd", "not a shard"],
+        ),
     ];
     for (what, parts, needles) in cases {
         assert_refused(what, &merge(&parts, &out), 1, &needles);
         assert!(!out.exists(), "{what}: data were written");
     }
-    assert_refused("4 shards of 3 chunks", &gen(&out, "5", Some("0/4")), 1, &["at most 3 shards"]);
+    assert_refused(
+        "4 shards of 3 chunks",
+        &gen_data(&out, "5", Some("0/4")),
+        1,
+        &["at most 3 shards"],
+    );
     assert!(!out.exists());
 }
