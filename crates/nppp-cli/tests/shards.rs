@@ -271,7 +271,9 @@ fn shard_flags_are_checked_before_rendering() {
     let dir = scratch("flags");
     let scene = repo("data/scenes/cornell-glass.json");
     let part = dir.join("p.nppr");
-    let cases: [(&str, Vec<&str>, PathBuf, i32, Vec<&str>); 5] = [
+    // (what, flags, --out, exit status, needles)
+    type Case<'a> = (&'a str, Vec<&'a str>, PathBuf, i32, Vec<&'a str>);
+    let cases: [Case; 5] = [
         (
             "I = K",
             vec!["--shard", "6/6"],
