@@ -7,7 +7,7 @@
 
 use anyhow::{Context, Result, anyhow, bail, ensure};
 use clap::Args;
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use indicatif::{ProgressBar, ProgressDrawTarget};
 use nppp_estimator::WriterOptions;
 use nppp_estimator::dataset::MAX_K;
 use nppp_render::datagen::{
@@ -318,12 +318,10 @@ fn progress_bar(rays: u64, quiet: bool) -> ProgressBar {
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::with_draw_target(Some(rays), ProgressDrawTarget::stderr_with_hz(4));
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} rays, {msg}, ETA {eta}",
-        )
-        .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    bar.set_style(nppp_files::progress_style(
+        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} rays, {msg}, ETA {eta}",
+        "rays",
+    ));
     bar.enable_steady_tick(Duration::from_millis(250));
     bar
 }

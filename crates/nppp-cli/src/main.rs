@@ -7,6 +7,7 @@ mod merge_cmd;
 mod mesh_cmd;
 mod plot;
 mod render_cmd;
+mod train_cmd;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -49,14 +50,14 @@ enum Command {
     /// Train an estimator (Burn) on data from `nppp gen`.
     Train {
         #[command(flatten)]
-        args: nppp_nn::TrainOptions,
+        args: train_cmd::TrainArgs,
         #[command(flatten)]
         threads: Threads,
     },
     /// Bake a trained model into a quantized `.nppp` estimator.
     Bake {
         #[command(flatten)]
-        args: nppp_nn::BakeOptions,
+        args: train_cmd::BakeArgs,
         #[command(flatten)]
         threads: Threads,
     },
@@ -174,7 +175,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train { args, threads } => {
             threads.install()?;
             stop_training_on_interrupt()?;
-            let r = nppp_nn::train(&args)?;
+            let r = nppp_nn::train(&args.options())?;
             print_summary(&r)?;
             // The curves beside the log; a machine without a font still
             // has the CSV and `nppp plot-log`.
@@ -192,7 +193,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Bake { args, threads } => {
             threads.install()?;
-            let r = nppp_nn::bake(&args)?;
+            let r = nppp_nn::bake(&args.options())?;
             print_summary(&r)
         }
         Command::Mesh(a) => mesh_cmd::run(&a),

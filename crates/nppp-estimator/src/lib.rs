@@ -13,6 +13,12 @@ pub mod recipe;
 pub mod sampler;
 pub mod shard;
 
+/// Relative margin of an estimator's bounding sphere around its mesh
+/// (`BoundingSphere::around`): no vertex may lie on the sphere itself, or
+/// input rays would start inside the surface. Data generation and the
+/// renderer must use the same sphere, so this has one home.
+pub const SPHERE_MARGIN: f32 = 0.01;
+
 pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
 pub use dataset::{DatasetError, DatasetHeader, DatasetReader, DatasetSummary, DatasetWriter, RayRecord, WriterOptions};
 pub use exit::{

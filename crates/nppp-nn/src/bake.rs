@@ -23,51 +23,31 @@ use crate::eval::{BurnEstimator, EvalOptions, ExitSource, HeldoutMetrics, eval_r
 use crate::io::load_dataset_where;
 use crate::model_dir::{LoadedModel, load_model_dir};
 
-fn parse_bits(s: &str) -> std::result::Result<u8, String> {
-    match s.trim() {
-        "8" => Ok(8),
-        "4" => Ok(4),
-        "2" => Ok(2),
-        _ => Err(format!("{s}: bits must be 8, 4 or 2")),
-    }
-}
-
-/// Command-line options of `nppp bake`.
-#[derive(clap::Args, Clone, Debug)]
+/// What `nppp bake` was asked for (`nppp-cli`'s `BakeArgs` map onto this).
+#[derive(Clone, Debug)]
 pub struct BakeOptions {
     /// Model directory written by `nppp train`.
-    #[arg(long)]
     pub model: PathBuf,
     /// Latent grid resolution S (S^4 nodes x latent_dim channels).
-    #[arg(long, default_value_t = 32)]
     pub latent_grid: u32,
     /// Mask grid resolution (S^4 logits).
-    #[arg(long, default_value_t = 32)]
     pub mask_grid: u32,
     /// Bits per latent value: 8, 4 or 2.
-    #[arg(long, default_value_t = 8, value_parser = parse_bits)]
     pub bits: u8,
     /// Bits per mask logit: 8, 4 or 2.
-    #[arg(long, default_value_t = 8, value_parser = parse_bits)]
     pub mask_bits: u8,
     /// The `.nppp` file to write.
-    #[arg(long)]
     pub out: PathBuf,
     /// Burn backend that evaluates the encoder and mask network.
-    #[arg(long, value_enum, default_value_t = BackendKind::default())]
     pub backend: BackendKind,
     /// Data file whose held-out rays score the result (default: the
     /// training data recorded in the model directory).
-    #[arg(long)]
     pub data: Option<PathBuf>,
     /// Skip the held-out comparison of baked and unbaked estimators.
-    #[arg(long)]
     pub no_eval: bool,
     /// Held-out hit rays scored.
-    #[arg(long, default_value_t = 512)]
     pub eval_rays: usize,
     /// No progress bars.
-    #[arg(long)]
     pub quiet: bool,
 }
 

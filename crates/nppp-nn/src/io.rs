@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use nppp_estimator::{DatasetHeader, DatasetReader, ExitTransform};
 use nppp_geom::BoundingSphere;
 use serde::{Deserialize, Serialize};
@@ -161,10 +161,10 @@ pub fn load_dataset_where(
         ProgressBar::hidden()
     } else {
         let pb = ProgressBar::new(reader.chunk_count() as u64);
-        pb.set_style(
-            ProgressStyle::with_template("read {bar:30} {pos}/{len} chunks {msg}")
-                .expect("static template"),
-        );
+        pb.set_style(nppp_files::progress_style(
+            "read {bar:30} {pos}/{len} chunks {msg}",
+            "chunks",
+        ));
         pb
     };
     let mut rays = Vec::new();

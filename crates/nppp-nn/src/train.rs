@@ -37,98 +37,74 @@ use crate::model_dir::{
 
 pub use crate::model_dir::files;
 
-/// Command-line options of `nppp train`. Hyperparameters left unset take the
+/// What `nppp train` was asked for (the CLI's flags, `nppp-cli`'s `TrainArgs`,
+/// map onto this one to one). Hyperparameters left unset take the
 /// defaults of [`TrainConfig`] on a fresh run, and the saved values on
 /// `--resume` (giving a different value then is an error, except for the
 /// budget, the learning rate and the backend).
-#[derive(clap::Args, Clone, Debug)]
+#[derive(Clone, Debug)]
 pub struct TrainOptions {
     /// Training data written by `nppp gen`.
-    #[arg(long)]
     pub data: PathBuf,
     /// Model directory to create (configs, checkpoint, log.csv).
-    #[arg(long)]
     pub out: PathBuf,
     /// Burn backend.
-    #[arg(long, value_enum, default_value_t = BackendKind::default())]
     pub backend: BackendKind,
     /// Length of the run in optimizer steps (default 24000: about 12 minutes
     /// on 2 cores); the learning-rate schedule follows it.
-    #[arg(long, conflicts_with = "epochs")]
     pub steps: Option<u64>,
     /// Length of the run in epochs (one epoch = one pass over the training
     /// hit rays), instead of --steps.
-    #[arg(long)]
     pub epochs: Option<usize>,
     /// Stop once this many steps are done in total, as if interrupted: the
     /// schedule still follows the run's length, and --resume continues it.
-    #[arg(long)]
     pub stop_after: Option<u64>,
     /// Training-time budget of this invocation in minutes (0 = none). Once
     /// 300 steps are timed, a run that would not fit is shortened so that it
     /// still ends with its learning-rate decay (the run length then depends
     /// on the machine's speed; use 0 for bit-reproducible runs). If the
     /// budget is spent anyway, training evaluates, checkpoints and stops.
-    #[arg(long, default_value_t = 60.0)]
     pub minutes: f64,
     /// Continue the checkpoint in --out.
-    #[arg(long, conflicts_with = "overwrite")]
     pub resume: bool,
     /// Start afresh even if --out holds a checkpoint (it is deleted once the
     /// data has been read and checked).
-    #[arg(long)]
     pub overwrite: bool,
     /// Input rays per step (hits, for the Chamfer term).
-    #[arg(long)]
     pub batch: Option<usize>,
     /// Exits per ray per step (a random subset of the file's k).
-    #[arg(long)]
     pub k: Option<usize>,
     /// Rays (hits and misses) per step for the mask term.
-    #[arg(long)]
     pub mask_batch: Option<usize>,
     /// Adam learning rate.
-    #[arg(long)]
     pub lr: Option<f64>,
     /// Weight of the energy-distance term added to Chamfer (0 = Chamfer only;
     /// default 1).
-    #[arg(long)]
     pub energy_weight: Option<f32>,
     /// Seed of every random choice of the run.
-    #[arg(long)]
     pub seed: Option<u64>,
     /// Every n-th ray of the file is held out for evaluation.
-    #[arg(long)]
     pub holdout_every: Option<usize>,
     /// Steps per epoch (default: one pass over the training hit rays).
-    #[arg(long)]
     pub steps_per_epoch: Option<usize>,
     /// Held-out hit rays scored at the end of every epoch.
-    #[arg(long)]
     pub eval_rays: Option<usize>,
     /// Latent size (z); the baked grid stores this many channels.
-    #[arg(long)]
     pub latent_dim: Option<usize>,
     /// Encoder hidden width.
-    #[arg(long)]
     pub encoder_width: Option<usize>,
     /// Decoder hidden width.
-    #[arg(long)]
     pub decoder_width: Option<usize>,
     /// Mask network hidden width.
-    #[arg(long)]
     pub mask_width: Option<usize>,
     /// Write a row of training losses (averaged since the previous row),
     /// learning rate and time per step to log.csv every this many steps
     /// (0: only at evaluations).
-    #[arg(long, default_value_t = 100)]
     pub log_every: u64,
     /// Also score the held-out rays (and checkpoint) every this many steps,
     /// besides every epoch's end (0: only at epoch ends).
-    #[arg(long, default_value_t = 2000)]
     pub eval_every: u64,
     /// No progress bar.
-    #[arg(long)]
     pub quiet: bool,
 }
 

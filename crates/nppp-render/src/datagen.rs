@@ -46,9 +46,7 @@ pub fn default_max_internal_bounces(m: &Material) -> u32 {
     }
 }
 
-/// Relative margin of the bounding sphere: no vertex may lie on the sphere
-/// itself, or input rays would start inside the surface.
-pub const SPHERE_MARGIN: f32 = 0.01;
+pub use nppp_estimator::SPHERE_MARGIN;
 
 /// Exits traced per batch: large enough that every thread of a big machine
 /// has work between two writes, small enough that two batches in flight

@@ -655,9 +655,6 @@ pub enum EstimatorLoadError {
 /// dense media included, and never walks further than the path may go.
 pub const ORACLE_MAX_INTERNAL_BOUNCES: u32 = 1 << 16;
 
-/// Margin of the bounding sphere around a mesh (shared with `nppp gen`).
-pub const SPHERE_MARGIN: f32 = 0.01;
-
 impl Estimators {
     /// Builds the scene's estimators; one file loaded once serves every
     /// instance that names it. Returns `None` for `Off` or when no instance
@@ -693,7 +690,7 @@ impl Estimators {
                     model: EstimatorModel::Oracle {
                         max_internal_bounces: ORACLE_MAX_INTERNAL_BOUNCES,
                     },
-                    sphere: BoundingSphere::around(&mesh.positions, SPHERE_MARGIN),
+                    sphere: BoundingSphere::around(&mesh.positions, nppp_estimator::SPHERE_MARGIN),
                     mesh: inst.mesh,
                     surface,
                     medium,
@@ -728,7 +725,8 @@ impl Estimators {
                     // damaged past its checksum: a sphere that does not
                     // enclose the mesh, or dwarfs it, would render the object
                     // in the wrong place or not at all.
-                    let own = BoundingSphere::around(&mesh.positions, SPHERE_MARGIN);
+                    let own =
+                        BoundingSphere::around(&mesh.positions, nppp_estimator::SPHERE_MARGIN);
                     let reach = sphere.radius * 1.001 + 1e-6 * sphere.center.abs().max_element();
                     let encloses = mesh
                         .positions
