@@ -1,6 +1,7 @@
 //! `nppp`: the command-line tool. Each subcommand is one stage of the
 //! pipeline (gen, train, bake, render, bench) or a utility (info, mesh).
 
+mod bench;
 mod bench_cmd;
 mod gen_cmd;
 mod merge_cmd;

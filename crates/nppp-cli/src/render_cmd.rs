@@ -368,12 +368,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
              with --min-bounces / --entry-nee to set them"
         );
     }
-    let mut rs = if matches!(mode, EstimatorMode::Off) {
-        RenderScene::new(&scene)
-    } else {
-        RenderScene::for_estimators(&scene)
-    };
-    rs.estimators = Estimators::load(&scene, mode, settings.estimator_min_bounces)
+    let mut rs = RenderScene::with_estimators(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;
     if let Some(e) = &mut rs.estimators {
         let nee = match a.entry_nee {

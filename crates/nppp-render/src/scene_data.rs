@@ -91,6 +91,23 @@ pub fn medium_of(m: &Material) -> Option<Medium> {
 }
 
 impl RenderScene {
+    /// The scene as `mode` renders it: its estimators loaded and bound to
+    /// their instances (none for `Off` or when no instance names one), and
+    /// the BVH layout that goes with them, chosen here so that no caller can
+    /// pair estimators with a layout that merged their instances away.
+    /// Estimator files are read before the BVHs are built: a bad file fails
+    /// at once.
+    pub fn with_estimators(
+        scene: &Scene,
+        mode: crate::estimator::EstimatorMode,
+        min_bounces: u32,
+    ) -> Result<Self, crate::estimator::EstimatorLoadError> {
+        let estimators = crate::estimator::Estimators::load(scene, mode, min_bounces)?;
+        let mut rs = Self::build(scene, estimators.is_some());
+        rs.estimators = estimators;
+        Ok(rs)
+    }
+
     /// For plain path tracing: every instance whose mesh is used once,
     /// estimator or not, is merged into the world BLAS (1.2x the samples/s of
     /// keeping the default scene's knot instanced, measured).

@@ -1,0 +1,415 @@
+//! Running the benchmark: `run` (scenes in turn, then the reports and
+//! plots), and per scene `bench_scene`: build the scene, get the reference,
+//! load the estimators, warm up, then render every configuration at every
+//! spp and seed, timed (`robust_seconds`) and compared to the reference.
+//! The only file that renders the measured configurations, so every time in
+//! the tables comes from one place and one method.
+
+use super::analysis::flip_mean;
+use super::machine::Machine;
+use super::plan::{
+    Config, DEFAULT_SCENES, Kind, NPPP_P, Plan, REFERENCE_FORMAT, REFERENCE_SEEDS, pt_bounce_ladder,
+};
+use super::plots::{plot_from_csv, plot_scene};
+use super::reference::{
+    ReferenceMeta, load_or_render_reference, resolve_scene, scene_hash, scene_name, tidy_path,
+};
+use super::report::{report_csv, report_markdown};
+use crate::bench_cmd::BenchArgs;
+use anyhow::{Context, Result, ensure};
+use nppp_render::estimator::{EstimatorMode, EstimatorStats, Estimators};
+use nppp_render::metrics::{self, Errors};
+use nppp_render::{Image, RenderOptions, RenderScene, image_io};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// One render, measured.
+pub(super) struct Measurement {
+    pub(super) config: usize,
+    pub(super) spp: u32,
+    pub(super) seed: u64,
+    pub(super) seconds: f64,
+    pub(super) samples: u64,
+    pub(super) errors: Errors,
+    pub(super) flip: Option<f64>,
+    /// Mean of the image over the reference's mean (all channels): the bias
+    /// an error number alone does not show.
+    pub(super) mean_ratio: f64,
+    pub(super) estimator_bytes: usize,
+    pub(super) stats: EstimatorStats,
+}
+
+pub(super) struct SceneResult {
+    pub(super) name: String,
+    pub(super) path: PathBuf,
+    pub(super) width: u32,
+    pub(super) height: u32,
+    pub(super) instances: usize,
+    pub(super) estimator_instances: usize,
+    pub(super) estimator_files: Vec<PathBuf>,
+    pub(super) triangles_unique: u64,
+    pub(super) triangles_instanced: u64,
+    pub(super) build_seconds: f64,
+    pub(super) reference: ReferenceMeta,
+    pub(super) reference_cached: bool,
+    /// M of the reference and the NPPP configurations (PT runs at 1..=M).
+    pub(super) max_bounces: u32,
+    pub(super) configs: Vec<Config>,
+    /// Configurations that could not run, with the reason.
+    pub(super) skipped: Vec<(String, String)>,
+    pub(super) measurements: Vec<Measurement>,
+}
+
+/// `nppp bench`: every scene of the plan, then results.md, results.csv
+/// and the plots in `--out` (or, with `--plot-csv`, only the plots).
+pub(crate) fn run(a: &BenchArgs) -> Result<()> {
+    if let Some(csv) = &a.plot_csv {
+        return plot_from_csv(csv, &a.out);
+    }
+    let plan = Plan::from_args(a)?;
+    let names: Vec<String> = a
+        .scenes
+        .clone()
+        .unwrap_or_else(|| DEFAULT_SCENES.iter().map(|s| s.to_string()).collect());
+    ensure!(!names.is_empty(), "--scenes is empty");
+    let paths: Vec<PathBuf> = names
+        .iter()
+        .map(|n| resolve_scene(&a.scenes_dir, n))
+        .collect::<Result<_>>()?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let machine = Machine::probe();
+    eprintln!(
+        "nppp bench ({}): {} scene(s), spp {:?}, reference {} spp, {} seed(s), resolution x{}, {} threads",
+        plan.mode,
+        paths.len(),
+        plan.ladder,
+        plan.reference_spp,
+        plan.seeds,
+        plan.scale,
+        rayon::current_num_threads()
+    );
+    let t0 = Instant::now();
+    let mut results = Vec::new();
+    for path in &paths {
+        results.push(
+            bench_scene(a, &plan, path)
+                .with_context(|| format!("benchmarking {}", path.display()))?,
+        );
+    }
+    let total = t0.elapsed().as_secs_f64();
+    let md = report_markdown(a, &plan, &machine, &results, total);
+    let md_path = a.out.join("results.md");
+    image_io::write_text(&md_path, &md)
+        .with_context(|| format!("writing {}", md_path.display()))?;
+    let csv_path = a.out.join("results.csv");
+    image_io::write_text(&csv_path, &report_csv(&results))
+        .with_context(|| format!("writing {}", csv_path.display()))?;
+    let mut plots = Vec::new();
+    for r in &results {
+        plots.extend(plot_scene(r, &a.out)?);
+    }
+    eprintln!(
+        "bench done in {:.0} s: {} and {}",
+        total,
+        md_path.display(),
+        csv_path.display()
+    );
+    for p in plots {
+        eprintln!("  plot: {p}");
+    }
+    Ok(())
+}
+
+/// Renders shorter than this are repeated (same seed, so the same image) and
+/// timed by their median, so scheduler noise does not decide a ratio.
+const SHORT_RENDER_S: f64 = 0.5;
+const MAX_REPEATS: usize = 5;
+
+/// The median time of a short render over up to [`MAX_REPEATS`] runs
+/// (including the one already made, which took `first` seconds).
+fn robust_seconds(rs: &RenderScene, spp: u32, m: u32, seed: u64, first: f64) -> f64 {
+    let mut times = vec![first];
+    let mut total = first;
+    while times.len() < MAX_REPEATS && total < SHORT_RENDER_S {
+        let (_, st) = render_with(rs, spp, m, seed);
+        times.push(st.seconds);
+        total += st.seconds;
+    }
+    times.sort_by(f64::total_cmp);
+    times[times.len() / 2]
+}
+
+fn image_sum(img: &Image) -> f64 {
+    img.pixels
+        .iter()
+        .map(|p| p.iter().map(|&c| c as f64).sum::<f64>())
+        .sum()
+}
+
+pub(super) fn render_with(
+    rs: &RenderScene,
+    spp: u32,
+    max_bounces: u32,
+    seed: u64,
+) -> (Image, nppp_render::RenderStats) {
+    nppp_render::render(
+        rs,
+        &RenderOptions {
+            spp,
+            max_bounces,
+            seed,
+            progress: false,
+        },
+    )
+}
+
+fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
+    let name = scene_name(path);
+    let dir = a.out.join(&name);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let mut scene = nppp_scene::load_scene(path)?;
+    let hash = scene_hash(path, &scene)?;
+    scene
+        .camera
+        .resize(Some(plan.scale), None, None)
+        .map_err(anyhow::Error::msg)?;
+    let (width, height) = (scene.camera.width, scene.camera.height);
+    let m = a.max_bounces.unwrap_or(scene.render.max_bounces);
+
+    let t_build = Instant::now();
+    // Plain path tracing gets its fastest layout (estimator instances merged
+    // into the world BLAS); estimator runs get theirs.
+    let mut rs = RenderScene::new(&scene);
+    let build_seconds = t_build.elapsed().as_secs_f64();
+    // A second layout only where the first merged an estimator instance
+    // (a once-used mesh); otherwise both would be the same scene.
+    let mut rs_est = scene
+        .instances
+        .iter()
+        .enumerate()
+        .any(|(i, inst)| inst.estimator.is_some() && rs.accel.is_merged(i))
+        .then(|| RenderScene::for_estimators(&scene));
+    let triangles_unique: u64 = scene.meshes.iter().map(|m| m.triangles.len() as u64).sum();
+    let triangles_instanced: u64 = scene
+        .instances
+        .iter()
+        .map(|i| scene.meshes[i.mesh].triangles.len() as u64)
+        .sum();
+    eprintln!(
+        "[{name}] {width}x{height}, {} instances, {triangles_instanced} instanced triangles, scene built in {build_seconds:.2} s",
+        scene.instances.len()
+    );
+
+    // The reference: cached when its settings match.
+    let want = ReferenceMeta {
+        format: REFERENCE_FORMAT,
+        scene: path.display().to_string(),
+        scene_hash: hash,
+        width,
+        height,
+        spp: plan.reference_spp,
+        max_bounces: m,
+        seeds: REFERENCE_SEEDS,
+        renderer: format!("nppp {}", env!("CARGO_PKG_VERSION")),
+        seconds: 0.0,
+        noise_floor_rel_mse: 0.0,
+    };
+    let (reference, reference_meta, reference_cached) =
+        load_or_render_reference(a, &rs, &dir, &name, &want)?;
+
+    // Estimators: the scene's own files, checked before any configuration runs.
+    let mut estimator_files: Vec<PathBuf> = scene
+        .instances
+        .iter()
+        .filter_map(|i| i.estimator.as_deref().map(tidy_path))
+        .collect();
+    estimator_files.sort();
+    estimator_files.dedup();
+    let estimator_instances = scene
+        .instances
+        .iter()
+        .filter(|i| i.estimator.is_some())
+        .count();
+    let mut configs: Vec<Config> = pt_bounce_ladder(m)
+        .into_iter()
+        .map(|mm| Config {
+            kind: Kind::Pt,
+            m: mm,
+            p: 0,
+        })
+        .collect();
+    let mut skipped = Vec::new();
+    let ps: Vec<u32> = NPPP_P.iter().copied().filter(|&p| p < m).collect();
+    let mut neural: Option<Estimators> = None;
+    if estimator_files.is_empty() {
+        skipped.push((
+            "NPPP (all P)".to_string(),
+            "skipped: no estimator (no instance of the scene names one)".to_string(),
+        ));
+    } else if let Some(missing) = estimator_files.iter().find(|f| !f.is_file()) {
+        skipped.push((
+            "NPPP (all P)".to_string(),
+            format!(
+                "skipped: no estimator ({} does not exist; see BENCHMARKS.md for how to build it)",
+                missing.display()
+            ),
+        ));
+    } else {
+        match Estimators::load(&scene, EstimatorMode::Neural, 0) {
+            Ok(Some(e)) => {
+                neural = Some(e);
+                configs.extend(ps.iter().map(|&p| Config {
+                    kind: Kind::Nppp,
+                    m,
+                    p,
+                }));
+            }
+            Ok(None) => skipped.push(("NPPP (all P)".into(), "skipped: no estimator".into())),
+            Err(e) => {
+                eprintln!("[{name}] warning: the estimators do not load: {e}");
+                skipped.push((
+                    "NPPP (all P)".into(),
+                    format!("skipped: the estimator does not load: {e}"),
+                ));
+            }
+        }
+    }
+    let mut oracle: Option<Estimators> = None;
+    if a.oracle && !estimator_files.is_empty() {
+        oracle = Estimators::load(&scene, EstimatorMode::Oracle, 0)
+            .with_context(|| format!("{}: oracle estimators", path.display()))?;
+        if oracle.is_some() {
+            configs.extend(ps.iter().map(|&p| Config {
+                kind: Kind::Oracle,
+                m,
+                p,
+            }));
+        }
+    }
+
+    // Warm-up (caches, thread pool, first touch of the estimator grids), untimed.
+    for c in &configs {
+        attach(
+            rs_est.as_mut().unwrap_or(&mut rs),
+            c,
+            &mut neural,
+            &mut oracle,
+        );
+        let _ = render_with(c.scene(&rs, rs_est.as_ref()), 1, c.m, 0);
+        detach(
+            rs_est.as_mut().unwrap_or(&mut rs),
+            c,
+            &mut neural,
+            &mut oracle,
+        );
+    }
+
+    let mut measurements = Vec::new();
+    let top = *plan.ladder.last().unwrap_or(&1);
+    for seed in 1..=plan.seeds as u64 {
+        for &spp in &plan.ladder {
+            for (ci, c) in configs.iter().enumerate() {
+                let estimator_bytes = attach(
+                    rs_est.as_mut().unwrap_or(&mut rs),
+                    c,
+                    &mut neural,
+                    &mut oracle,
+                );
+                let rs_c = c.scene(&rs, rs_est.as_ref());
+                let (img, mut stats) = render_with(rs_c, spp, c.m, seed);
+                stats.seconds = robust_seconds(rs_c, spp, c.m, seed, stats.seconds);
+                detach(
+                    rs_est.as_mut().unwrap_or(&mut rs),
+                    c,
+                    &mut neural,
+                    &mut oracle,
+                );
+                let errors = metrics::compare(&img, &reference)
+                    .with_context(|| format!("{name}: comparing {} to the reference", c.label()))?;
+                let flip = flip_mean(&img, &reference);
+                let mean_ratio = image_sum(&img) / image_sum(&reference).max(1e-300);
+                eprintln!(
+                    "[{name}] seed {seed} {:>4} spp {:<12} {:>8.3} s {:>7.3} M samples/s  relMSE {:.4e} (trimmed {:.4e})",
+                    spp,
+                    c.label(),
+                    stats.seconds,
+                    stats.samples_per_second() / 1e6,
+                    errors.rel_mse,
+                    errors.rel_mse_trimmed
+                );
+                if seed == 1 && spp == top {
+                    let p = dir.join(format!("{}-{spp}spp.png", c.slug()));
+                    image_io::write_png(&img, &p)
+                        .with_context(|| format!("writing {}", p.display()))?;
+                }
+                measurements.push(Measurement {
+                    config: ci,
+                    spp,
+                    seed,
+                    seconds: stats.seconds,
+                    samples: stats.samples,
+                    errors,
+                    flip,
+                    mean_ratio,
+                    estimator_bytes,
+                    stats: stats.estimators,
+                });
+            }
+        }
+    }
+    Ok(SceneResult {
+        name,
+        path: path.to_path_buf(),
+        width,
+        height,
+        instances: scene.instances.len(),
+        estimator_instances,
+        estimator_files,
+        triangles_unique,
+        triangles_instanced,
+        build_seconds,
+        reference: reference_meta,
+        reference_cached,
+        max_bounces: m,
+        configs,
+        skipped,
+        measurements,
+    })
+}
+
+/// Puts the configuration's estimators (with its P) into the scene; returns
+/// their memory.
+fn attach(
+    rs: &mut RenderScene,
+    c: &Config,
+    neural: &mut Option<Estimators>,
+    oracle: &mut Option<Estimators>,
+) -> usize {
+    let src = match c.kind {
+        Kind::Pt => None,
+        Kind::Nppp => neural.take(),
+        Kind::Oracle => oracle.take(),
+    };
+    rs.estimators = src.map(|mut e| {
+        e.configure(c.p, nppp_render::estimator::EntryNee::Off);
+        e
+    });
+    rs.estimators
+        .as_ref()
+        .map(|e| e.memory_bytes())
+        .unwrap_or(0)
+}
+
+fn detach(
+    rs: &mut RenderScene,
+    c: &Config,
+    neural: &mut Option<Estimators>,
+    oracle: &mut Option<Estimators>,
+) {
+    let e = rs.estimators.take();
+    match c.kind {
+        Kind::Pt => {}
+        Kind::Nppp => *neural = e,
+        Kind::Oracle => *oracle = e,
+    }
+}

@@ -1,0 +1,164 @@
+//! What a bench run measures: the default scenes, the spp ladder and its
+//! defaults (`Plan`, from the flags), PT's bounce ladder, and the
+//! configurations (`Kind`, `Config`) with their labels as the report and
+//! results.csv spell them. Kept apart from the harness so that what is
+//! measured can be read (and tested) without how it is run.
+
+use crate::bench_cmd::BenchArgs;
+use anyhow::{Result, ensure};
+use nppp_render::RenderScene;
+
+/// The M' at which plain path tracing is measured: every M' up to 16, then
+/// about two per octave (1, 2, ..., 16, 24, 32, 48, 64, ...) and M itself,
+/// so that a translucent scene at M = 256 costs 23 PT configurations, not 256.
+pub(super) fn pt_bounce_ladder(m: u32) -> Vec<u32> {
+    let mut ladder: Vec<u32> = (1..=m.min(16)).collect();
+    let mut step = 16u32;
+    while step < m {
+        for x in [step + step / 2, step * 2] {
+            if x < m {
+                ladder.push(x);
+            }
+        }
+        step *= 2;
+    }
+    if m > 16 {
+        ladder.push(m);
+    }
+    ladder
+}
+
+#[cfg(test)]
+mod ladder_tests {
+    #[test]
+    fn ladder_is_every_m_to_16_then_two_per_octave_ending_at_m() {
+        assert_eq!(super::pt_bounce_ladder(5), vec![1, 2, 3, 4, 5]);
+        let l = super::pt_bounce_ladder(256);
+        assert_eq!(&l[15..], &[16, 24, 32, 48, 64, 96, 128, 192, 256]);
+        let l = super::pt_bounce_ladder(100);
+        assert_eq!(&l[15..], &[16, 24, 32, 48, 64, 96, 100]);
+    }
+}
+
+/// The benchmark scenes, in `--scenes-dir`.
+pub(super) const DEFAULT_SCENES: &[&str] = &[
+    "cornell-box",
+    "cornell-glass",
+    "cornell-gold",
+    "cornell-jade",
+    "tube",
+    "room",
+];
+/// Seeds of the reference's two halves: far from the seeds 1..N of the
+/// measured renders, whose random streams must not overlap the reference's.
+pub(super) const REFERENCE_SEEDS: [u64; 2] = [0x5EED_0000_0001, 0x5EED_0000_0002];
+/// Bump when the reference's meaning changes, so old caches are re-rendered.
+pub(super) const REFERENCE_FORMAT: u32 = 1;
+/// The P values of the thesis' comparison.
+pub(super) const NPPP_P: [u32; 4] = [0, 1, 2, 3];
+
+pub(super) struct Plan {
+    pub(super) mode: &'static str,
+    pub(super) ladder: Vec<u32>,
+    pub(super) reference_spp: u32,
+    pub(super) seeds: u32,
+    pub(super) scale: f64,
+}
+
+impl Plan {
+    pub(super) fn from_args(a: &BenchArgs) -> Result<Self> {
+        let (mode, ladder, reference_spp, seeds, scale) = if a.quick {
+            ("quick", vec![4, 16, 64], 512, 2, 0.5)
+        } else {
+            ("full", vec![4, 16, 64, 256, 1024], 4096, 3, 1.0)
+        };
+        let mut ladder = a.spp.clone().unwrap_or(ladder);
+        ladder.sort_unstable();
+        ladder.dedup();
+        ensure!(
+            !ladder.is_empty() && ladder[0] >= 1,
+            "--spp needs at least one value, each at least 1"
+        );
+        let plan = Plan {
+            mode,
+            ladder,
+            reference_spp: a.reference_spp.unwrap_or(reference_spp),
+            seeds: a.seeds.unwrap_or(seeds),
+            scale: a.scale.unwrap_or(scale),
+        };
+        ensure!(
+            plan.reference_spp >= 2,
+            "--reference-spp must be at least 2 (it is rendered as two halves)"
+        );
+        ensure!(plan.seeds >= 1, "--seeds must be at least 1");
+        ensure!(
+            plan.scale.is_finite() && plan.scale > 0.0 && plan.scale <= 4.0,
+            "--scale must be in (0, 4]"
+        );
+        ensure!(
+            a.max_bounces.is_none_or(|m| m >= 1),
+            "--max-bounces must be at least 1"
+        );
+        Ok(plan)
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Kind {
+    Pt,
+    Nppp,
+    Oracle,
+}
+
+impl Kind {
+    /// The `kind` column of results.csv.
+    pub(super) fn name(self) -> &'static str {
+        match self {
+            Kind::Pt => "pt",
+            Kind::Nppp => "nppp",
+            Kind::Oracle => "oracle",
+        }
+    }
+
+    pub(super) fn from_name(s: &str) -> Option<Self> {
+        [Kind::Pt, Kind::Nppp, Kind::Oracle]
+            .into_iter()
+            .find(|k| k.name() == s)
+    }
+}
+
+#[derive(Clone, Debug)]
+pub(super) struct Config {
+    pub(super) kind: Kind,
+    pub(super) m: u32,
+    pub(super) p: u32,
+}
+
+impl Config {
+    pub(super) fn label(&self) -> String {
+        match self.kind {
+            Kind::Pt => format!("PT M={}", self.m),
+            Kind::Nppp => format!("NPPP P={}", self.p),
+            Kind::Oracle => format!("oracle P={}", self.p),
+        }
+    }
+    /// The scene layout this configuration renders: merged for PT,
+    /// estimator instances kept apart otherwise (where that differs).
+    pub(super) fn scene<'a>(
+        &self,
+        pt: &'a RenderScene,
+        with_estimators: Option<&'a RenderScene>,
+    ) -> &'a RenderScene {
+        match self.kind {
+            Kind::Pt => pt,
+            Kind::Nppp | Kind::Oracle => with_estimators.unwrap_or(pt),
+        }
+    }
+    pub(super) fn slug(&self) -> String {
+        match self.kind {
+            Kind::Pt => format!("pt-m{}", self.m),
+            Kind::Nppp => format!("nppp-p{}", self.p),
+            Kind::Oracle => format!("oracle-p{}", self.p),
+        }
+    }
+}
