@@ -97,6 +97,8 @@ impl RenderScene {
     /// pair estimators with a layout that merged their instances away.
     /// Estimator files are read before the BVHs are built: a bad file fails
     /// at once.
+    // Once per render, as `Estimators::load`: a large error value is no cost.
+    #[allow(clippy::result_large_err)]
     pub fn with_estimators(
         scene: &Scene,
         mode: crate::estimator::EstimatorMode,
