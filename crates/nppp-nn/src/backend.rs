@@ -46,7 +46,8 @@ impl BackendKind {
     }
 
     /// Whether results are reproducible bit for bit on this backend (CPU
-    /// backends are; GPU reductions and seeding are not, STACK.md).
+    /// backends are; on a GPU, parallel reductions sum in no fixed order and
+    /// Burn's wgpu seeding is per device).
     pub fn is_deterministic(self) -> bool {
         !matches!(self, Self::Wgpu)
     }

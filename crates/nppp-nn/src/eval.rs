@@ -40,7 +40,8 @@ pub fn eval_rng(seed: u64, index: u64) -> SampleRng {
 }
 
 /// Rows per Burn call: big enough to amortize Burn's per-call overhead
-/// (STACK.md: never call Burn per ray), small enough for a few MiB of tensors.
+/// (each call builds a graph and launches kernels: calling Burn per ray would
+/// cost more than the network), small enough for a few MiB of tensors.
 const ROWS_PER_CALL: usize = 32_768;
 
 /// The trained model, run through Burn.

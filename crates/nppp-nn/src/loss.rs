@@ -6,8 +6,8 @@ use burn::tensor::Tensor;
 
 /// Squared Euclidean distances between every pair of rows of `a` (`[B, n, d]`)
 /// and `b` (`[B, m, d]`) -> `[B, n, m]`, as |a|^2 + |b|^2 - 2 a b^T: one batched
-/// matmul instead of a `[B, n, m, d]` difference tensor (2-5x faster on CPU,
-/// STACK.md). Rounding can make the expansion slightly negative, so it is
+/// matmul instead of a `[B, n, m, d]` difference tensor (2-5x faster on the
+/// CPU backends, measured when this was written). Rounding can make the expansion slightly negative, so it is
 /// clamped at zero.
 pub fn pairwise_sq_dists(a: Tensor<3>, b: Tensor<3>) -> Tensor<3> {
     let aa = a.clone().square().sum_dim(2); // [B, n, 1]

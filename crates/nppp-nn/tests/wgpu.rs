@@ -1,7 +1,7 @@
 //! The wgpu backend's code path on whatever Vulkan device is present (in CI,
 //! Mesa's software rasterizer lavapipe, installed by `.ci/run`). A smoke test
 //! of correctness so the path does not rot, never of speed (lavapipe is
-//! 13-36x slower than NdArray, STACK.md). Run it with
+//! 13-36x slower than NdArray here, measured). Run it with
 //! `cargo test -p nppp-nn --features wgpu --test wgpu` (`make test-wgpu`).
 #![cfg(feature = "wgpu")]
 
