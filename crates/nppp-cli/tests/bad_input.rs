@@ -1140,7 +1140,7 @@ fn dataset_files_give_clear_errors() {
 /// Files that once crashed the debug build, kept as regression tests, each
 /// with the error it must now give (see docs/robustness.md).
 const KNOWN_CRASHERS: &[(&str, &[&str])] = &[
-    // dataset.rs, DatasetReader::from_source: `e.offset + CHUNK_HEADER_LEN`
+    // dataset/mod.rs, DatasetReader::from_source: `e.offset + CHUNK_HEADER_LEN`
     // overflowed for a (checksummed) index entry near u64::MAX (fixed with a
     // checked add).
     (

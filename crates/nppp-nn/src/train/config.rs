@@ -1,0 +1,441 @@
+//! The run's configuration: what `nppp train` was asked for
+//! ([`TrainOptions`]), what defines a run ([`TrainConfig`], saved as
+//! `train_config.json`), how the two meet on a fresh run or a resume
+//! (`resolve_config`, which also opens and checks the checkpoint), and the
+//! fingerprint of the data a checkpoint is checked against.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use burn::config::Config;
+use nppp_estimator::EXIT_FEATURES;
+
+use super::CHECKPOINT_EVERY_S;
+use crate::backend::BackendKind;
+use crate::data::TrainingData;
+use crate::features::INPUT_FEATURES;
+use crate::io::DatasetInfo;
+use crate::model::ModelConfig;
+use crate::model_dir::{
+    Checkpoint, DataFingerprint, check_fresh_out, checkpoint_dir, open_checkpoint,
+};
+
+/// What `nppp train` was asked for (the CLI's flags, `nppp-cli`'s `TrainArgs`,
+/// map onto this one to one). Hyperparameters left unset take the
+/// defaults of [`TrainConfig`] on a fresh run, and the saved values on
+/// `--resume` (giving a different value then is an error, except for the
+/// budget, the learning rate and the backend).
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
+    /// Training data written by `nppp gen`.
+    pub data: PathBuf,
+    /// Model directory to create (configs, checkpoint, log.csv).
+    pub out: PathBuf,
+    /// Burn backend.
+    pub backend: BackendKind,
+    /// Length of the run in optimizer steps (default 24000: about 12 minutes
+    /// on 2 cores); the learning-rate schedule follows it.
+    pub steps: Option<u64>,
+    /// Length of the run in epochs (one epoch = one pass over the training
+    /// hit rays), instead of --steps.
+    pub epochs: Option<usize>,
+    /// Stop once this many steps are done in total, as if interrupted: the
+    /// schedule still follows the run's length, and --resume continues it.
+    pub stop_after: Option<u64>,
+    /// Training-time budget of this invocation in minutes (0 = none). Once
+    /// 300 steps are timed, a run that would not fit is shortened so that it
+    /// still ends with its learning-rate decay (the run length then depends
+    /// on the machine's speed; use 0 for bit-reproducible runs). If the
+    /// budget is spent anyway, training evaluates, checkpoints and stops.
+    pub minutes: f64,
+    /// Continue the checkpoint in --out.
+    pub resume: bool,
+    /// Start afresh even if --out holds a checkpoint (it is deleted once the
+    /// data has been read and checked).
+    pub overwrite: bool,
+    /// Input rays per step (hits, for the Chamfer term).
+    pub batch: Option<usize>,
+    /// Exits per ray per step (a random subset of the file's k).
+    pub k: Option<usize>,
+    /// Rays (hits and misses) per step for the mask term.
+    pub mask_batch: Option<usize>,
+    /// Adam learning rate.
+    pub lr: Option<f64>,
+    /// Weight of the energy-distance term added to Chamfer (0 = Chamfer only;
+    /// default 1).
+    pub energy_weight: Option<f32>,
+    /// Seed of every random choice of the run.
+    pub seed: Option<u64>,
+    /// Every n-th ray of the file is held out for evaluation.
+    pub holdout_every: Option<usize>,
+    /// Steps per epoch (default: one pass over the training hit rays).
+    pub steps_per_epoch: Option<usize>,
+    /// Held-out hit rays scored at the end of every epoch.
+    pub eval_rays: Option<usize>,
+    /// Latent size (z); the baked grid stores this many channels.
+    pub latent_dim: Option<usize>,
+    /// Encoder hidden width.
+    pub encoder_width: Option<usize>,
+    /// Decoder hidden width.
+    pub decoder_width: Option<usize>,
+    /// Mask network hidden width.
+    pub mask_width: Option<usize>,
+    /// Write a row of training losses (averaged since the previous row),
+    /// learning rate and time per step to log.csv every this many steps
+    /// (0: only at evaluations).
+    pub log_every: u64,
+    /// Also score the held-out rays (and checkpoint) every this many steps,
+    /// besides every epoch's end (0: only at epoch ends).
+    pub eval_every: u64,
+    /// No progress bar.
+    pub quiet: bool,
+}
+
+impl TrainOptions {
+    /// Options with every hyperparameter at its default.
+    pub fn new(data: impl Into<PathBuf>, out: impl Into<PathBuf>) -> Self {
+        Self {
+            data: data.into(),
+            out: out.into(),
+            backend: BackendKind::default(),
+            epochs: None,
+            steps: None,
+            stop_after: None,
+            minutes: 60.0,
+            resume: false,
+            overwrite: false,
+            batch: None,
+            k: None,
+            mask_batch: None,
+            lr: None,
+            energy_weight: None,
+            seed: None,
+            holdout_every: None,
+            steps_per_epoch: None,
+            eval_rays: None,
+            latent_dim: None,
+            encoder_width: None,
+            decoder_width: None,
+            mask_width: None,
+            log_every: 100,
+            eval_every: 2000,
+            quiet: false,
+        }
+    }
+}
+
+/// Everything that defines a training run, saved as `train_config.json`.
+#[derive(Config, Debug, PartialEq)]
+pub struct TrainConfig {
+    pub model: ModelConfig,
+    #[config(default = 64)]
+    pub batch: usize,
+    #[config(default = 64)]
+    pub k: usize,
+    /// Rays per step for the mask term (they are cheap: one logit each).
+    #[config(default = 1024)]
+    pub mask_batch: usize,
+    /// Adam (1e-3, 0.9, 0.999) as in the thesis; epsilon 1e-8 (Burn's
+    /// default is 1e-5, which damps small gradients).
+    #[config(default = 1e-3)]
+    pub lr: f64,
+    /// The rate stays at `lr` until this fraction of the run's steps, then
+    /// decays (half cosine) to `lr * lr_final`: at a constant rate the
+    /// held-out brightness bias swings by a few percent from epoch to epoch,
+    /// and the run should end on steady weights. 1 = no decay.
+    #[config(default = 0.7)]
+    pub lr_decay_from: f64,
+    #[config(default = 0.05)]
+    pub lr_final: f64,
+    #[config(default = 0.9)]
+    pub beta_1: f32,
+    #[config(default = 0.999)]
+    pub beta_2: f32,
+    #[config(default = 1e-8)]
+    pub epsilon: f32,
+    /// Weight of the energy distance next to Chamfer. Chamfer matches
+    /// supports, not densities: on the knot, Chamfer alone left the held-out
+    /// mean throughput 1.5% too bright (per-ray RMS error 3.9%); with the
+    /// energy term at weight 1: +0.9% and 3.0%, for 18% more time per step.
+    #[config(default = 1.0)]
+    pub energy_weight: f32,
+    #[config(default = 1.0)]
+    pub mask_weight: f32,
+    /// Per-parameter gradient-norm clip (0 = off): a safety net against a
+    /// rare batch of far outliers, not a regularizer.
+    #[config(default = 10.0)]
+    pub grad_clip_norm: f32,
+    #[config(default = 1)]
+    pub seed: u64,
+    #[config(default = 20)]
+    pub holdout_every: usize,
+    /// 0 = one pass over the training hit rays.
+    #[config(default = 0)]
+    pub steps_per_epoch: usize,
+    /// Length of the run in steps, unless `epochs` is set.
+    #[config(default = 24000)]
+    pub steps: u64,
+    /// Length of the run in epochs (0 = use `steps`).
+    #[config(default = 0)]
+    pub epochs: usize,
+    /// Held-out hit rays whose exits are scored at each epoch's end.
+    #[config(default = 512)]
+    pub eval_rays: usize,
+}
+
+impl TrainConfig {
+    /// The learning rate of step `step` (0-based) of a run of `total` steps.
+    pub fn lr_at(&self, step: u64, total: u64) -> f64 {
+        let start = self.lr_decay_from * total as f64;
+        let s = step as f64;
+        if total == 0 || s < start || self.lr_decay_from >= 1.0 {
+            return self.lr;
+        }
+        let t = ((s - start) / (total as f64 - start).max(1.0)).clamp(0.0, 1.0);
+        let f =
+            self.lr_final + (1.0 - self.lr_final) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos());
+        self.lr * f
+    }
+
+    fn validate(&self) -> Result<()> {
+        self.model.validate()?;
+        let pos = [
+            ("batch", self.batch),
+            ("k", self.k),
+            ("mask_batch", self.mask_batch),
+        ];
+        for (name, v) in pos {
+            if v == 0 {
+                bail!("{name} must be at least 1");
+            }
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0) {
+            bail!("learning rate {} must be positive", self.lr);
+        }
+        if !((0.0..=1.0).contains(&self.lr_decay_from) && (0.0..=1.0).contains(&self.lr_final)) {
+            bail!("lr_decay_from and lr_final must be in [0, 1]");
+        }
+        if !(self.energy_weight.is_finite() && self.energy_weight >= 0.0) {
+            bail!("energy weight {} must be >= 0", self.energy_weight);
+        }
+        if self.holdout_every < 2 {
+            bail!("holdout_every must be at least 2");
+        }
+        self.check_step_memory()
+    }
+
+    /// Bytes one step holds for the exit terms (pairwise distances of the
+    /// b x k generated and real exits, decoder activations) and for the mask
+    /// term: the forward values kept for the backward pass, their gradients
+    /// and temporaries (x3), in f32. An estimate from the shapes, meant to
+    /// refuse flags that cannot fit, not to predict the peak exactly.
+    pub fn step_memory_bytes(&self) -> (u64, u64) {
+        let m = &self.model;
+        let w = |x: usize| x as u64;
+        let (b, k, bm) = (w(self.batch), w(self.k), w(self.mask_batch));
+        let bk = b.saturating_mul(k);
+        let per_exit = w(m.decoder_width)
+            .saturating_mul(w(m.decoder_layers) + 1)
+            .saturating_add(w(EXIT_FEATURES + m.noise_dim + m.latent_dim));
+        let exits = bk
+            .saturating_mul(k.saturating_mul(6))
+            .saturating_add(bk.saturating_mul(per_exit))
+            .saturating_add(b.saturating_mul(
+                w(m.encoder_width).saturating_mul(w(m.encoder_layers) + 1) + w(INPUT_FEATURES),
+            ));
+        let mask = bm.saturating_mul(
+            w(m.mask_width)
+                .saturating_mul(w(m.mask_layers) + 1)
+                .saturating_add(w(INPUT_FEATURES)),
+        );
+        let bytes = |elems: u64| elems.saturating_mul(4 * 3);
+        (bytes(exits), bytes(mask))
+    }
+
+    /// Refuses a batch shape whose step would not fit in half the memory
+    /// available (16 GiB assumed where it cannot be read): a clear error
+    /// instead of an abort on allocation.
+    fn check_step_memory(&self) -> Result<()> {
+        let budget = nppp_files::available_memory().unwrap_or(16 << 30) / 2;
+        let (exits, mask) = self.step_memory_bytes();
+        let fmt = nppp_files::format_bytes;
+        if exits > budget {
+            bail!(
+                "--batch {} with --k {}: one training step would hold about {} (pairwise \
+                 distances of {} x {} x {} exits and the decoder's activations), more than half \
+                 of the {} of memory available; the defaults are --batch 64 --k 64",
+                self.batch,
+                self.k,
+                fmt(exits),
+                self.batch,
+                self.k,
+                self.k,
+                fmt(2 * budget)
+            );
+        }
+        if mask > budget {
+            bail!(
+                "--mask-batch {}: one training step would hold about {} for the mask term, more \
+                 than half of the {} of memory available; the default is 1024",
+                self.mask_batch,
+                fmt(mask),
+                fmt(2 * budget)
+            );
+        }
+        Ok(())
+    }
+}
+
+/// The run's configuration: the saved one on resume (checked against the
+/// command line), else defaults overridden by the command line. On resume,
+/// the checked checkpoint comes with it.
+pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option<Checkpoint>)> {
+    let mut ckpt = None;
+    let mut cfg = if opts.resume {
+        if !opts.out.is_dir() {
+            bail!(
+                "--resume: {} is not a model directory (no such folder)",
+                opts.out.display()
+            );
+        }
+        let c = open_checkpoint(&opts.out)
+            .context("--resume")?
+            .with_context(|| {
+                format!(
+                    "--resume: {} holds no checkpoint to resume (a run saves its first one at \
+                     the end of its first epoch, after {} s, or when stopped)",
+                    opts.out.display(),
+                    CHECKPOINT_EVERY_S
+                )
+            })?;
+        let cfg = c.train_config.clone();
+        ckpt = Some(c);
+        let clash = |name: &str, given: Option<String>, saved: String| -> Result<()> {
+            match given {
+                Some(g) if g != saved => bail!(
+                    "--resume: --{name} {g} differs from the checkpoint's {saved}; a resumed run \
+                     keeps its configuration (train into a new --out to change it)"
+                ),
+                _ => Ok(()),
+            }
+        };
+        fn s<T: ToString>(x: Option<T>) -> Option<String> {
+            x.map(|v| v.to_string())
+        }
+        clash("batch", s(opts.batch), cfg.batch.to_string())?;
+        clash("k", s(opts.k), cfg.k.to_string())?;
+        clash("mask-batch", s(opts.mask_batch), cfg.mask_batch.to_string())?;
+        clash(
+            "energy-weight",
+            s(opts.energy_weight),
+            cfg.energy_weight.to_string(),
+        )?;
+        clash("seed", s(opts.seed), cfg.seed.to_string())?;
+        clash(
+            "holdout-every",
+            s(opts.holdout_every),
+            cfg.holdout_every.to_string(),
+        )?;
+        clash(
+            "steps-per-epoch",
+            s(opts.steps_per_epoch),
+            cfg.steps_per_epoch.to_string(),
+        )?;
+        clash(
+            "latent-dim",
+            s(opts.latent_dim),
+            cfg.model.latent_dim.to_string(),
+        )?;
+        clash(
+            "encoder-width",
+            s(opts.encoder_width),
+            cfg.model.encoder_width.to_string(),
+        )?;
+        clash(
+            "decoder-width",
+            s(opts.decoder_width),
+            cfg.model.decoder_width.to_string(),
+        )?;
+        clash(
+            "mask-width",
+            s(opts.mask_width),
+            cfg.model.mask_width.to_string(),
+        )?;
+        cfg
+    } else {
+        check_fresh_out(&opts.out)?;
+        if checkpoint_dir(&opts.out).is_some() && !opts.overwrite {
+            bail!(
+                "{} already holds a checkpoint; pass --resume to continue it, --overwrite to \
+                 start afresh, or choose another --out",
+                opts.out.display()
+            );
+        }
+        let mut model = ModelConfig::new();
+        if let Some(v) = opts.latent_dim {
+            model.latent_dim = v;
+        }
+        if let Some(v) = opts.encoder_width {
+            model.encoder_width = v;
+        }
+        if let Some(v) = opts.decoder_width {
+            model.decoder_width = v;
+        }
+        if let Some(v) = opts.mask_width {
+            model.mask_width = v;
+        }
+        let mut cfg = TrainConfig::new(model);
+        if let Some(v) = opts.batch {
+            cfg.batch = v;
+        }
+        if let Some(v) = opts.k {
+            cfg.k = v;
+        }
+        if let Some(v) = opts.mask_batch {
+            cfg.mask_batch = v;
+        }
+        if let Some(v) = opts.energy_weight {
+            cfg.energy_weight = v;
+        }
+        if let Some(v) = opts.seed {
+            cfg.seed = v;
+        }
+        if let Some(v) = opts.holdout_every {
+            cfg.holdout_every = v;
+        }
+        if let Some(v) = opts.steps_per_epoch {
+            cfg.steps_per_epoch = v;
+        }
+        cfg
+    };
+    // The length, the learning rate and the evaluation may change between
+    // invocations (a longer run stretches the decay phase accordingly).
+    if let Some(v) = opts.epochs {
+        cfg.epochs = v;
+    }
+    if let Some(v) = opts.steps {
+        cfg.steps = v;
+        cfg.epochs = 0;
+    }
+    if let Some(v) = opts.lr {
+        cfg.lr = v;
+    }
+    if let Some(v) = opts.eval_rays {
+        cfg.eval_rays = v;
+    }
+    if !(opts.minutes.is_finite() && opts.minutes >= 0.0) {
+        bail!("--minutes {} must be >= 0", opts.minutes);
+    }
+    cfg.validate()?;
+    Ok((cfg, ckpt))
+}
+
+pub(super) fn fingerprint(info: &DatasetInfo, data: &TrainingData) -> DataFingerprint {
+    DataFingerprint {
+        rays: data.train.len() + data.heldout.len(),
+        hits: data.train.hits() + data.heldout.hits(),
+        k: data.k,
+        mesh_hash: info.mesh_hash,
+        material_hash: info.material_hash,
+    }
+}
