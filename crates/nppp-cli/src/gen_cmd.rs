@@ -14,7 +14,7 @@ use nppp_render::datagen::{
     GenConfig, GenObject, GenStats, default_max_internal_bounces, generate_shard, measure_bvh,
 };
 use nppp_scene::procedural::Procedural;
-use nppp_scene::{Mesh, Scene, SceneError};
+use nppp_scene::{Material, Mesh};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -346,15 +346,18 @@ fn load_object(a: &GenArgs) -> Result<(GenObject, Vec<(String, PathBuf)>)> {
     Ok((load_flag_object(a)?, inputs))
 }
 
-/// The object named by --mesh and --material.
+/// The object named by --mesh and --material, each validated by the scene
+/// loader exactly as in a scene file (`nppp_scene::parse_material`,
+/// `parse_mesh`), errors naming the flag.
 fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
-    let (Some(mesh), Some(material)) = (&a.mesh, &a.material) else {
+    let (Some(mesh_arg), Some(material_arg)) = (&a.mesh, &a.material) else {
         bail!("name the object with --scene FILE --instance N, or with --mesh and --material");
     };
-    let (material_name, material_json) = material_spec(material)?;
-    let (mesh_name, mesh) = match procedural_spec(mesh)? {
+    let (material_name, material_json) = material_spec(material_arg)?;
+    let material = nppp_scene::parse_material(&material_json, "--material")?;
+    let (mesh_name, mesh) = match procedural_spec(mesh_arg)? {
         Some(p) => {
-            let m = p.build().with_context(|| format!("--mesh {mesh}"))?;
+            let m = p.build().with_context(|| format!("--mesh {mesh_arg}"))?;
             (
                 p.name(),
                 Mesh {
@@ -365,27 +368,21 @@ fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
             )
         }
         None => {
-            let (name, json) = mesh_spec(mesh, a.smooth)?;
-            let scene = object_scene(&json, &material_json)?;
-            let m = scene
-                .meshes
-                .into_iter()
-                .next()
-                .context("internal: the one-object scene has no mesh")?;
-            (name, m)
+            let (name, json) = mesh_spec(mesh_arg, a.smooth)?;
+            (name, nppp_scene::parse_mesh(&json, "--mesh")?)
         }
     };
-    // Validated through the scene loader, so --material obeys the scene format exactly.
-    let scene = object_scene(
-        r#"{"box": {"min": [0, 0, 0], "max": [1, 1, 1]}}"#,
-        &material_json,
-    )?;
-    Ok(GenObject::new(
-        &mesh_name,
-        &mesh,
-        &material_name,
-        scene.materials[0],
-    )?)
+    // The scene contract's rule for translucent objects, as the loader
+    // applies it to a scene's instances.
+    if matches!(material, Material::Translucent { .. })
+        && let Some(edge) = nppp_scene::open_edge(&mesh)
+    {
+        bail!(
+            "--mesh {mesh_arg}: is used with the translucent --material but is not a closed mesh: \
+             {edge}; a medium needs a watertight, consistently oriented boundary"
+        );
+    }
+    Ok(GenObject::new(&mesh_name, &mesh, &material_name, material)?)
 }
 
 /// `builtin` and `procedural:TYPE`: the project's standard objects.
@@ -459,49 +456,4 @@ fn material_spec(s: &str) -> Result<(String, String)> {
         .to_string();
     ensure!(v.is_object(), "--material: expected a JSON object, got {s}");
     Ok((ty, v.to_string()))
-}
-
-/// A one-instance scene around the given mesh and material JSON, so that
-/// both are validated by the scene loader exactly as in a scene file. Both
-/// are re-serialized JSON values here, so they cannot break out of their slot.
-fn object_scene(mesh_json: &str, material_json: &str) -> Result<Scene> {
-    let text = format!(
-        r#"{{"camera": {{"position": [0, 0, -5], "look_at": [0, 0, 0], "fov_y_deg": 40, "width": 1, "height": 1}},
-            "materials": {{"m": {material_json}}}, "meshes": {{"object": {mesh_json}}},
-            "instances": [{{"mesh": "object", "material": "m"}}]}}"#
-    );
-    nppp_scene::parse_scene(&text, Path::new("(command line)"))
-        .map_err(|e| anyhow::anyhow!(flag_error(e)))
-}
-
-/// Scene-loader errors reworded to name the flag instead of a scene file that does not exist.
-fn flag_error(e: SceneError) -> String {
-    let flag_of = |key: &str| -> (&'static str, String) {
-        for (prefix, flag) in [("materials.m", "--material"), ("meshes.object", "--mesh")] {
-            if let Some(rest) = key.strip_prefix(prefix) {
-                return (flag, rest.trim_start_matches('.').to_string());
-            }
-        }
-        ("--mesh/--material", key.to_string())
-    };
-    match e {
-        SceneError::Invalid { key, message, .. } => {
-            let (flag, rest) = flag_of(&key);
-            if rest.is_empty() {
-                format!("{flag}: {message}")
-            } else {
-                format!("{flag}: {rest}: {message}")
-            }
-        }
-        SceneError::Obj {
-            obj, line, message, ..
-        } => {
-            format!(
-                "--mesh {}{}: {message}",
-                obj.display(),
-                line.map(|l| format!(":{l}")).unwrap_or_default()
-            )
-        }
-        other => other.to_string(),
-    }
 }

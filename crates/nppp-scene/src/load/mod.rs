@@ -39,18 +39,50 @@ pub fn load_scene(path: &Path) -> Result<Scene, SceneError> {
 /// path is only used to resolve relative OBJ/estimator paths and to name the
 /// file in messages, so tests can parse strings).
 pub fn parse_scene(json: &str, path: &Path) -> Result<Scene, SceneError> {
-    let root = json::parse(json).map_err(|f| SceneError::Json {
-        file: path.to_path_buf(),
-        line: f.line,
-        column: f.column,
-        key: f.key,
-        message: f.message,
-    })?;
+    let root = parse_json(json, path)?;
     let cx = Cx {
         file: path,
         dir: path.parent().unwrap_or(Path::new("")),
     };
     cx.scene(&root)
+}
+
+/// One material in the scene format's JSON on its own (a command-line flag,
+/// say), validated exactly as inside a scene file. `source` stands where a
+/// scene's errors name the file (e.g. `--material`); key paths start inside
+/// the material (`albedo`).
+pub fn parse_material(json: &str, source: &str) -> Result<Material, SceneError> {
+    let file = Path::new(source);
+    let root = parse_json(json, file)?;
+    Cx {
+        file,
+        dir: Path::new(""),
+    }
+    .material(&root, "")
+}
+
+/// One mesh object in the scene format's JSON on its own (`{"obj": ...}`,
+/// `{"icosphere": {...}}`, ...), validated exactly as inside a scene file;
+/// a relative OBJ path is read from the current folder. `source` as in
+/// [`parse_material`].
+pub fn parse_mesh(json: &str, source: &str) -> Result<Mesh, SceneError> {
+    let file = Path::new(source);
+    let root = parse_json(json, file)?;
+    Cx {
+        file,
+        dir: Path::new(""),
+    }
+    .mesh(&root, "")
+}
+
+fn parse_json(json: &str, file: &Path) -> Result<Json, SceneError> {
+    json::parse(json).map_err(|f| SceneError::Json {
+        file: file.to_path_buf(),
+        line: f.line,
+        column: f.column,
+        key: f.key,
+        message: f.message,
+    })
 }
 
 type Res<T> = Result<T, SceneError>;
