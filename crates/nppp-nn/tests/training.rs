@@ -140,8 +140,20 @@ fn resume_continues_from_the_saved_step() {
     // Changing a hyperparameter on resume is refused with a clear message.
     let mut o2 = o.clone();
     o2.batch = Some(17);
-    let err = train_with_data(&o2, info, data).unwrap_err();
-    assert!(err.to_string().contains("batch"), "{err}");
+    let err = train_with_data(&o2, info.clone(), data.clone()).unwrap_err();
+    assert!(
+        err.to_string()
+            .contains("--batch 17 differs from the checkpoint's"),
+        "{err}"
+    );
+    // A model hyperparameter likewise.
+    let mut o3 = o.clone();
+    o3.decoder_width = Some(24);
+    let err = train_with_data(&o3, info, data).unwrap_err();
+    assert!(
+        err.to_string().contains("--decoder-width 24 differs"),
+        "{err}"
+    );
     // Same weights as the uninterrupted run, bit for bit (the files
     // themselves differ: they carry random parameter ids).
     assert_eq!(

@@ -286,6 +286,26 @@ impl TrainConfig {
     }
 }
 
+/// The hyperparameters a run keeps for its whole length, once each:
+/// `(flag, TrainOptions field, TrainConfig field)`, applied by `$apply`. A
+/// fresh run takes the given ones; `--resume` refuses a given one that
+/// differs from the checkpoint's.
+macro_rules! kept_hyperparameters {
+    ($apply:ident) => {
+        $apply!("batch", batch, batch);
+        $apply!("k", k, k);
+        $apply!("mask-batch", mask_batch, mask_batch);
+        $apply!("energy-weight", energy_weight, energy_weight);
+        $apply!("seed", seed, seed);
+        $apply!("holdout-every", holdout_every, holdout_every);
+        $apply!("steps-per-epoch", steps_per_epoch, steps_per_epoch);
+        $apply!("latent-dim", latent_dim, model.latent_dim);
+        $apply!("encoder-width", encoder_width, model.encoder_width);
+        $apply!("decoder-width", decoder_width, model.decoder_width);
+        $apply!("mask-width", mask_width, model.mask_width);
+    };
+}
+
 /// The run's configuration: the saved one on resume (checked against the
 /// command line), else defaults overridden by the command line. On resume,
 /// the checked checkpoint comes with it.
@@ -319,48 +339,12 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
                 _ => Ok(()),
             }
         };
-        fn s<T: ToString>(x: Option<T>) -> Option<String> {
-            x.map(|v| v.to_string())
+        macro_rules! check_kept {
+            ($flag:literal, $opt:ident, $($field:ident).+) => {
+                clash($flag, opts.$opt.map(|v| v.to_string()), cfg.$($field).+.to_string())?;
+            };
         }
-        clash("batch", s(opts.batch), cfg.batch.to_string())?;
-        clash("k", s(opts.k), cfg.k.to_string())?;
-        clash("mask-batch", s(opts.mask_batch), cfg.mask_batch.to_string())?;
-        clash(
-            "energy-weight",
-            s(opts.energy_weight),
-            cfg.energy_weight.to_string(),
-        )?;
-        clash("seed", s(opts.seed), cfg.seed.to_string())?;
-        clash(
-            "holdout-every",
-            s(opts.holdout_every),
-            cfg.holdout_every.to_string(),
-        )?;
-        clash(
-            "steps-per-epoch",
-            s(opts.steps_per_epoch),
-            cfg.steps_per_epoch.to_string(),
-        )?;
-        clash(
-            "latent-dim",
-            s(opts.latent_dim),
-            cfg.model.latent_dim.to_string(),
-        )?;
-        clash(
-            "encoder-width",
-            s(opts.encoder_width),
-            cfg.model.encoder_width.to_string(),
-        )?;
-        clash(
-            "decoder-width",
-            s(opts.decoder_width),
-            cfg.model.decoder_width.to_string(),
-        )?;
-        clash(
-            "mask-width",
-            s(opts.mask_width),
-            cfg.model.mask_width.to_string(),
-        )?;
+        kept_hyperparameters!(check_kept);
         cfg
     } else {
         check_fresh_out(&opts.out)?;
@@ -371,41 +355,15 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
                 opts.out.display()
             );
         }
-        let mut model = ModelConfig::new();
-        if let Some(v) = opts.latent_dim {
-            model.latent_dim = v;
+        let mut cfg = TrainConfig::new(ModelConfig::new());
+        macro_rules! set_given {
+            ($flag:literal, $opt:ident, $($field:ident).+) => {
+                if let Some(v) = opts.$opt {
+                    cfg.$($field).+ = v;
+                }
+            };
         }
-        if let Some(v) = opts.encoder_width {
-            model.encoder_width = v;
-        }
-        if let Some(v) = opts.decoder_width {
-            model.decoder_width = v;
-        }
-        if let Some(v) = opts.mask_width {
-            model.mask_width = v;
-        }
-        let mut cfg = TrainConfig::new(model);
-        if let Some(v) = opts.batch {
-            cfg.batch = v;
-        }
-        if let Some(v) = opts.k {
-            cfg.k = v;
-        }
-        if let Some(v) = opts.mask_batch {
-            cfg.mask_batch = v;
-        }
-        if let Some(v) = opts.energy_weight {
-            cfg.energy_weight = v;
-        }
-        if let Some(v) = opts.seed {
-            cfg.seed = v;
-        }
-        if let Some(v) = opts.holdout_every {
-            cfg.holdout_every = v;
-        }
-        if let Some(v) = opts.steps_per_epoch {
-            cfg.steps_per_epoch = v;
-        }
+        kept_hyperparameters!(set_given);
         cfg
     };
     // The length, the learning rate and the evaluation may change between
