@@ -439,6 +439,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     };
     if let Some(sh) = a.shard {
         let samples = nppp_render::render_part::shard_samples(sh.index, sh.count, settings.spp);
+        // Read (the estimator files' hashes) before the render, not after it.
+        let part_settings = part_settings(a, &scene, &rs, auto_choices)?;
         let (film, stats) = nppp_render::render_film(&rs, &opts, samples.clone());
         let header = nppp_render::render_part::RenderPartHeader {
             renderer: nppp_render::render_part::renderer_id(),
@@ -450,7 +452,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             seed: settings.seed,
             max_bounces: settings.max_bounces,
             samples: [samples.start, samples.end],
-            settings: part_settings(a, &scene, &rs, auto_choices)?,
+            settings: part_settings,
             seconds: stats.seconds + pilot_seconds,
         };
         nppp_render::render_part::write_part(&a.out, &header, &film)?;
