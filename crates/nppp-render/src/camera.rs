@@ -1,6 +1,7 @@
 //! The pinhole camera of docs/scene-format.md.
 
 use glam::{Vec2, Vec3};
+use nppp_geom::SampleRng;
 use nppp_scene::Camera as CameraDesc;
 
 /// Precomputed camera basis; `ray` maps a film position (in pixels, row 0 at
@@ -53,4 +54,12 @@ impl PinholeCamera {
         let y = (1.0 - 2.0 * p.y / self.height as f32) * self.tan_half_fov;
         (self.forward + self.right * x + self.up * y).normalize()
     }
+}
+
+/// The film position of a camera sample: uniform inside pixel (x, y), from
+/// the sample's own random stream (its first two numbers).
+#[inline]
+pub fn jitter(rng: &mut SampleRng, x: u32, y: u32) -> Vec2 {
+    let u = rng.uniform2();
+    Vec2::new(x as f32 + u.x, y as f32 + u.y)
 }

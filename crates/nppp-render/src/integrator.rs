@@ -602,10 +602,3 @@ pub fn sample_scatter(
 pub fn offset_ray_origin(p: Vec3, n: Vec3, dir: Vec3, eps: f32) -> Vec3 {
     offset_point(p, n, dir, eps)
 }
-
-/// The primary sample position of a camera sample: uniform inside the pixel.
-#[inline]
-pub fn jitter(rng: &mut SampleRng, x: u32, y: u32) -> Vec2 {
-    let u = rng.uniform2();
-    Vec2::new(x as f32 + u.x, y as f32 + u.y)
-}

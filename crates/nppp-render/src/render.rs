@@ -1,10 +1,11 @@
 //! The render driver: tiles in parallel with rayon, one wavefront per worker,
 //! a progress bar on stderr, and the statistics a user needs to trust the image.
 
+use crate::camera::jitter;
 use crate::estimator::EstimatorStats;
 use crate::film::PixelSum;
 use crate::image_io::Image;
-use crate::integrator::{IntegratorSettings, PathState, Wavefront, WorkCounts, jitter};
+use crate::integrator::{IntegratorSettings, PathState, Wavefront, WorkCounts};
 use crate::scene_data::RenderScene;
 use indicatif::{ProgressBar, ProgressDrawTarget};
 use nppp_geom::SampleRng;
