@@ -32,7 +32,8 @@ use crate::estimator::{EntryNee, Estimators};
 use crate::image_io::Image;
 use crate::integrator::WorkCounts;
 use crate::render::{RenderOptions, render};
-use crate::scene_data::{RenderScene, SurfaceKind};
+use crate::scene_data::RenderScene;
+use crate::surface::SurfaceKind;
 
 /// Cost of one closest-hit ray beyond its node visits (shading, sampling,
 /// the wavefront's bookkeeping), in node visits. Fitted with the entry cost

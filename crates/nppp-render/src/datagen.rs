@@ -11,8 +11,9 @@
 //! when a test or a bug report needs it.
 
 use crate::accel::Blas;
+use crate::medium::Medium;
 use crate::object_walk::{ObjectTracer, Walk};
-use crate::scene_data::{medium_of, surface_of};
+use crate::surface::SurfaceKind;
 use glam::Vec3;
 use nppp_estimator::dataset::MAX_K;
 use nppp_estimator::{
@@ -149,8 +150,8 @@ impl GenObject {
     pub fn tracer(&self, max_internal_bounces: u32) -> ObjectTracer<'_> {
         ObjectTracer {
             blas: &self.blas,
-            surface: surface_of(&self.material),
-            medium: medium_of(&self.material),
+            surface: SurfaceKind::of(&self.material),
+            medium: Medium::of(&self.material),
             sphere: self.sphere,
             geo_normals: &self.geo_normals,
             shading_normals: self.shading_normals.as_deref(),

@@ -12,9 +12,9 @@
 use crate::accel::{Accel, SceneHit};
 use crate::bsdf::Bsdf;
 use crate::bvh4::Visit;
-use crate::integrator::PathState;
 use crate::object_walk::{ObjectTracer, Walk, WalkVertex};
-use crate::scene_data::SurfaceKind;
+use crate::path::PathState;
+use crate::surface::SurfaceKind;
 use glam::Vec3;
 use nppp_estimator::{DecodeRepairs, EXIT_FEATURES, EstimatorSampler, Exit};
 use nppp_geom::sphere_pair::unit_sphere_chord;
@@ -225,7 +225,7 @@ pub fn first_vertex_skipped(
     }
     let last = (exit.bounces == 1)
         .then(|| {
-            let (frame, _) = crate::integrator::shading_frame(&bsdf, v.ng, v.ns, v.wo);
+            let (frame, _) = crate::surface::shading_frame(&bsdf, v.ng, v.ns, v.wo);
             let (_, pdf) = bsdf.eval(frame.to_local(v.wo), frame.to_local(exit.direction));
             (v.point, pdf)
         })
@@ -683,8 +683,8 @@ impl Estimators {
                 continue;
             }
             let mesh = &scene.meshes[inst.mesh];
-            let surface = crate::scene_data::surface_of(&scene.materials[inst.material]);
-            let medium = crate::scene_data::medium_of(&scene.materials[inst.material]);
+            let surface = SurfaceKind::of(&scene.materials[inst.material]);
+            let medium = crate::medium::Medium::of(&scene.materials[inst.material]);
             let est = match mode {
                 EstimatorMode::Oracle => Estimator {
                     model: EstimatorModel::Oracle {

@@ -21,10 +21,12 @@ use crate::bsdf::Bsdf;
 use crate::estimator::{EntryBatch, EntryNee, EstimatorStats, Meet, SkippedVertices};
 use crate::film::PixelSum;
 use crate::medium::HeroChannel;
-use crate::scene_data::{RenderScene, SurfaceKind};
+use crate::path::{MediumVisit, PathState};
+use crate::scene_data::RenderScene;
+use crate::surface::{SurfaceKind, offset_ray_origin, sample_scatter, shading_frame};
 use glam::{Vec2, Vec3};
+use nppp_geom::Frame;
 use nppp_geom::sampling::power_heuristic;
-use nppp_geom::{Frame, SampleRng};
 
 /// Russian roulette starts after this many scattering events.
 pub const RR_START_DEPTH: u32 = 3;
@@ -39,65 +41,6 @@ pub const RR_MIN_TERMINATION: f32 = 0.05;
 pub struct IntegratorSettings {
     pub max_bounces: u32,
     pub seed: u64,
-}
-
-/// One path's state between bounces.
-#[derive(Clone, Debug)]
-pub struct PathState {
-    /// Index of the pixel inside the batch's accumulation buffer.
-    pub slot: u32,
-    pub rng: SampleRng,
-    pub origin: Vec3,
-    pub dir: Vec3,
-    /// Throughput.
-    pub beta: Vec3,
-    /// Radiance gathered so far.
-    pub radiance: Vec3,
-    pub depth: u32,
-    /// BSDF pdf of the direction that produced this ray (for MIS at an emitter hit).
-    pub prev_pdf: f32,
-    /// Whether that direction came from a delta lobe (or an estimator exit): MIS weight 1.
-    pub prev_delta: bool,
-    /// Position of the vertex the ray left from.
-    pub prev_point: Vec3,
-    /// Product of the radiance scalings at refractions, undone for Russian roulette.
-    pub eta_scale: f32,
-    /// The instance whose estimator this ray has just left (ignored by the
-    /// next intersection), or `NO_SKIP`.
-    pub skip_instance: u32,
-    /// The medium the path is travelling through: set when the path
-    /// refracts into a translucent object, cleared when it refracts out
-    /// (media do not nest).
-    pub medium: Option<MediumVisit>,
-}
-
-/// A path's visit of a translucent object's medium.
-#[derive(Clone, Copy, Debug)]
-pub struct MediumVisit {
-    /// The instance whose medium it is (`RenderScene::media`).
-    pub instance: u32,
-    /// The visit's spectral MIS (see `crate::medium`).
-    pub hero: HeroChannel,
-}
-
-impl PathState {
-    pub fn camera(slot: u32, rng: SampleRng, origin: Vec3, dir: Vec3) -> Self {
-        Self {
-            slot,
-            rng,
-            origin,
-            dir,
-            beta: Vec3::ONE,
-            radiance: Vec3::ZERO,
-            depth: 0,
-            prev_pdf: 0.0,
-            prev_delta: true,
-            prev_point: origin,
-            eta_scale: 1.0,
-            skip_instance: crate::accel::NO_SKIP,
-            medium: None,
-        }
-    }
 }
 
 /// Work a render did, counted: deterministic at any thread count, unlike
@@ -352,16 +295,6 @@ fn follow_exit(
     Next::Continue
 }
 
-/// Moves `p` off the surface with normal `n` to the side `dir` points to.
-#[inline]
-fn offset_point(p: Vec3, n: Vec3, dir: Vec3, eps: f32) -> Vec3 {
-    if dir.dot(n) >= 0.0 {
-        p + n * eps
-    } else {
-        p - n * eps
-    }
-}
-
 fn shade(
     scene: &RenderScene,
     s: &IntegratorSettings,
@@ -430,7 +363,7 @@ fn shade(
     path.prev_delta = bs.delta || in_medium;
     path.prev_point = p;
     path.depth += 1;
-    path.origin = offset_point(p, ng, wi, eps);
+    path.origin = offset_ray_origin(p, ng, wi, eps);
     path.dir = wi;
     path.skip_instance = crate::accel::NO_SKIP;
     if bs.transmitted {
@@ -534,7 +467,7 @@ pub fn sample_ld(
     if bsdf.is_delta() || scene.lights.is_empty() {
         return Vec3::ZERO;
     }
-    let origin = offset_point(v.p, v.ng_side, v.ng_side, v.eps);
+    let origin = offset_ray_origin(v.p, v.ng_side, v.ng_side, v.eps);
     let Some(ls) = scene.lights.sample(origin, u_light, u_light2) else {
         return Vec3::ZERO;
     };
@@ -547,7 +480,7 @@ pub fn sample_ld(
         return Vec3::ZERO;
     }
     let light_eps =
-        (ls.point.abs().max_element() * crate::scene_data::OFFSET_REL).max(ls.offset_floor);
+        (ls.point.abs().max_element() * crate::surface::OFFSET_REL).max(ls.offset_floor);
     let tmax = ls.dist - light_eps;
     if tmax <= 0.0 {
         return Vec3::ZERO;
@@ -558,47 +491,4 @@ pub fn sample_ld(
     }
     let w = power_heuristic(ls.pdf, bsdf_pdf);
     f * ls.radiance * (w / ls.pdf)
-}
-
-/// The shading frame at a vertex and the geometric normal on the side the
-/// path arrived from. Two-sided materials see the surface from wo's side;
-/// glass keeps front = outside.
-#[inline]
-pub fn shading_frame(bsdf: &Bsdf, ng: Vec3, ns: Vec3, wo_world: Vec3) -> (Frame, Vec3) {
-    let (ng_side, ns_side) = if bsdf.two_sided() && wo_world.dot(ng) < 0.0 {
-        (-ng, -ns)
-    } else {
-        (ng, ns)
-    };
-    (Frame::from_normal(ns_side), ng_side)
-}
-
-/// Samples the continuation of a path at a surface: the one BSDF-sampling
-/// routine that the renderer, the data generator and the oracle estimator
-/// share. Returns the world direction and the local sample, or `None` when
-/// the path ends (absorbed, or the direction disagrees with the geometric
-/// surface: reflection must stay on wo's side, transmission must cross).
-#[inline]
-pub fn sample_scatter(
-    bsdf: &Bsdf,
-    frame: &Frame,
-    ng: Vec3,
-    wo_world: Vec3,
-    u_lobe: f32,
-    u_dir: Vec2,
-) -> Option<(Vec3, crate::bsdf::BsdfSample)> {
-    let wo = frame.to_local(wo_world);
-    let bs = bsdf.sample(wo, u_lobe, u_dir)?;
-    let wi = frame.to_world(bs.wi);
-    let reflect_side = wi.dot(ng) * wo_world.dot(ng) > 0.0;
-    if reflect_side == bs.transmitted {
-        return None;
-    }
-    Some((wi, bs))
-}
-
-/// Moves `p` off the surface with normal `n` to the side `dir` points to.
-#[inline]
-pub fn offset_ray_origin(p: Vec3, n: Vec3, dir: Vec3, eps: f32) -> Vec3 {
-    offset_point(p, n, dir, eps)
 }

@@ -20,9 +20,11 @@ pub mod lights;
 pub mod medium;
 pub mod metrics;
 pub mod object_walk;
+pub mod path;
 pub mod render;
 pub mod render_part;
 pub mod scene_data;
+pub mod surface;
 
 pub use image_io::Image;
 pub use render::{RenderOptions, RenderStats, render, render_film};

@@ -16,6 +16,7 @@
 
 use glam::{Vec2, Vec3};
 use nppp_geom::Frame;
+use nppp_scene::Material;
 use std::f32::consts::PI;
 
 /// A homogeneous medium: coefficients per unit length in the frame it is
@@ -160,6 +161,22 @@ impl Medium {
 pub fn hg_phase(cos: f32, g: f32) -> f32 {
     let denom = 1.0 + g * g - 2.0 * g * cos;
     (1.0 - g * g) / (4.0 * PI * denom * denom.max(0.0).sqrt())
+}
+
+impl Medium {
+    /// The medium inside a material's boundary (translucent objects), in
+    /// the mesh's own units.
+    pub fn of(m: &Material) -> Option<Medium> {
+        match *m {
+            Material::Translucent {
+                sigma_s,
+                sigma_a,
+                g,
+                ..
+            } => Some(Medium::new(sigma_s, sigma_a, g)),
+            _ => None,
+        }
+    }
 }
 
 #[cfg(test)]

@@ -7,9 +7,8 @@
 
 use crate::accel::Blas;
 use crate::bsdf::Bsdf;
-use crate::integrator::{offset_ray_origin, sample_scatter, shading_frame};
 use crate::medium::{HeroChannel, Medium};
-use crate::scene_data::{OFFSET_REL, SurfaceKind};
+use crate::surface::{OFFSET_REL, SurfaceKind, offset_ray_origin, sample_scatter, shading_frame};
 use glam::Vec3;
 use nppp_estimator::Exit;
 use nppp_geom::sphere_pair::unit_sphere_chord;

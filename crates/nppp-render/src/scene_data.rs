@@ -2,19 +2,12 @@
 //! shading data and the light list, built once from a loaded [`Scene`].
 
 use crate::accel::{Accel, SceneHit};
-use crate::bsdf::Bsdf;
 use crate::camera::PinholeCamera;
 use crate::lights::{LightTriangle, Lights};
 use crate::medium::Medium;
+use crate::surface::{OFFSET_REL, SurfaceKind};
 use glam::Vec3;
-use nppp_scene::{Material, Scene};
-
-/// What a surface does to a path; a closed enum so the hot loop matches instead of dispatching.
-#[derive(Clone, Copy, Debug)]
-pub enum SurfaceKind {
-    Scatter(Bsdf),
-    Emitter { radiance: Vec3 },
-}
+use nppp_scene::Scene;
 
 /// Everything the integrator reads, immutable and shared by all threads.
 pub struct RenderScene {
@@ -53,41 +46,6 @@ pub struct RenderScene {
     /// all. Only a scene built by [`RenderScene::for_estimators`] can use
     /// them ([`crate::render`] checks).
     pub estimators: Option<crate::estimator::Estimators>,
-}
-
-/// Relative size of the offset that moves a spawned ray off its surface;
-/// a few hundred ulps of the coordinates involved.
-pub const OFFSET_REL: f32 = 2e-5;
-
-pub fn surface_of(m: &Material) -> SurfaceKind {
-    match *m {
-        Material::Diffuse { albedo } => SurfaceKind::Scatter(Bsdf::Diffuse { albedo }),
-        Material::Conductor {
-            reflectance,
-            roughness,
-        } => SurfaceKind::Scatter(Bsdf::Conductor {
-            reflectance,
-            alpha: roughness,
-        }),
-        Material::Dielectric { ior } | Material::Translucent { ior, .. } => {
-            SurfaceKind::Scatter(Bsdf::Dielectric { ior })
-        }
-        Material::Emitter { radiance } => SurfaceKind::Emitter { radiance },
-    }
-}
-
-/// The medium inside a material's boundary (translucent objects), in the
-/// mesh's own units.
-pub fn medium_of(m: &Material) -> Option<Medium> {
-    match *m {
-        Material::Translucent {
-            sigma_s,
-            sigma_a,
-            g,
-            ..
-        } => Some(Medium::new(sigma_s, sigma_a, g)),
-        _ => None,
-    }
 }
 
 impl RenderScene {
@@ -169,7 +127,7 @@ impl RenderScene {
             .collect();
         let mut light_tris = Vec::new();
         for (ii, i) in scene.instances.iter().enumerate() {
-            let s = surface_of(&scene.materials[i.material]);
+            let s = SurfaceKind::of(&scene.materials[i.material]);
             light_base.push(light_tris.len() as u32);
             if let SurfaceKind::Emitter { radiance } = s {
                 let x = &accel.instances[ii];
@@ -210,7 +168,7 @@ impl RenderScene {
                 .instances
                 .iter()
                 .map(|i| {
-                    medium_of(&scene.materials[i.material]).map(|m| m.scaled(i.transform.scale))
+                    Medium::of(&scene.materials[i.material]).map(|m| m.scaled(i.transform.scale))
                 })
                 .collect(),
             estimators: None,

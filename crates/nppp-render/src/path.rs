@@ -1,0 +1,65 @@
+//! One path's state between bounces: what the wavefront integrator advances
+//! and what an estimator entry reads and continues.
+
+use crate::medium::HeroChannel;
+use glam::Vec3;
+use nppp_geom::SampleRng;
+
+/// One path's state between bounces.
+#[derive(Clone, Debug)]
+pub struct PathState {
+    /// Index of the pixel inside the batch's accumulation buffer.
+    pub slot: u32,
+    pub rng: SampleRng,
+    pub origin: Vec3,
+    pub dir: Vec3,
+    /// Throughput.
+    pub beta: Vec3,
+    /// Radiance gathered so far.
+    pub radiance: Vec3,
+    pub depth: u32,
+    /// BSDF pdf of the direction that produced this ray (for MIS at an emitter hit).
+    pub prev_pdf: f32,
+    /// Whether that direction came from a delta lobe (or an estimator exit): MIS weight 1.
+    pub prev_delta: bool,
+    /// Position of the vertex the ray left from.
+    pub prev_point: Vec3,
+    /// Product of the radiance scalings at refractions, undone for Russian roulette.
+    pub eta_scale: f32,
+    /// The instance whose estimator this ray has just left (ignored by the
+    /// next intersection), or `NO_SKIP`.
+    pub skip_instance: u32,
+    /// The medium the path is travelling through: set when the path
+    /// refracts into a translucent object, cleared when it refracts out
+    /// (media do not nest).
+    pub medium: Option<MediumVisit>,
+}
+
+/// A path's visit of a translucent object's medium.
+#[derive(Clone, Copy, Debug)]
+pub struct MediumVisit {
+    /// The instance whose medium it is (`RenderScene::media`).
+    pub instance: u32,
+    /// The visit's spectral MIS (see `crate::medium`).
+    pub hero: HeroChannel,
+}
+
+impl PathState {
+    pub fn camera(slot: u32, rng: SampleRng, origin: Vec3, dir: Vec3) -> Self {
+        Self {
+            slot,
+            rng,
+            origin,
+            dir,
+            beta: Vec3::ONE,
+            radiance: Vec3::ZERO,
+            depth: 0,
+            prev_pdf: 0.0,
+            prev_delta: true,
+            prev_point: origin,
+            eta_scale: 1.0,
+            skip_instance: crate::accel::NO_SKIP,
+            medium: None,
+        }
+    }
+}
