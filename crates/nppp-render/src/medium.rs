@@ -82,6 +82,20 @@ impl HeroChannel {
 }
 
 impl Medium {
+    /// The medium inside a material's boundary (translucent objects), in
+    /// the mesh's own units.
+    pub fn of(m: &Material) -> Option<Medium> {
+        match *m {
+            Material::Translucent {
+                sigma_s,
+                sigma_a,
+                g,
+                ..
+            } => Some(Medium::new(sigma_s, sigma_a, g)),
+            _ => None,
+        }
+    }
+
     pub fn new(sigma_s: Vec3, sigma_a: Vec3, g: f32) -> Self {
         Self {
             sigma_s,
@@ -161,22 +175,6 @@ impl Medium {
 pub fn hg_phase(cos: f32, g: f32) -> f32 {
     let denom = 1.0 + g * g - 2.0 * g * cos;
     (1.0 - g * g) / (4.0 * PI * denom * denom.max(0.0).sqrt())
-}
-
-impl Medium {
-    /// The medium inside a material's boundary (translucent objects), in
-    /// the mesh's own units.
-    pub fn of(m: &Material) -> Option<Medium> {
-        match *m {
-            Material::Translucent {
-                sigma_s,
-                sigma_a,
-                g,
-                ..
-            } => Some(Medium::new(sigma_s, sigma_a, g)),
-            _ => None,
-        }
-    }
 }
 
 #[cfg(test)]
