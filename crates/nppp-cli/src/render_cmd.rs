@@ -31,6 +31,11 @@ pub struct RenderArgs {
     /// --shard writes, byte for byte (tools/slurm runs it as a job array).
     #[arg(long, value_parser = crate::merge_cmd::parse_shard, conflicts_with_all = ["png", "reference"])]
     pub shard: Option<crate::merge_cmd::Shard>,
+    /// Render only samples START..END of every pixel (START included, END
+    /// not, of 0..spp) into a render part, as --shard does with ranges of
+    /// your choice: more samples to faster machines.
+    #[arg(long, value_parser = parse_samples, conflicts_with_all = ["shard", "png", "reference"])]
+    pub samples: Option<std::ops::Range<u32>>,
     /// Also write an sRGB PNG preview here.
     #[arg(long)]
     pub png: Option<PathBuf>,
@@ -214,10 +219,10 @@ fn check_outputs(a: &RenderArgs, scene: &nppp_scene::Scene) -> Result<()> {
         nppp_files::ensure_not_input("--png", p, &inputs).map_err(anyhow::Error::msg)?;
     }
     let has_ext = crate::has_extension;
-    if a.shard.is_some() {
+    if a.shard.is_some() || a.samples.is_some() {
         anyhow::ensure!(
             has_ext(&a.out, "nppr"),
-            "--out {}: with --shard the output is a render part for `nppp merge`; name it *.nppr",
+            "--out {}: with --shard or --samples the output is a render part for `nppp merge`; name it *.nppr",
             a.out.display()
         );
     } else {
@@ -309,15 +314,37 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(p) = a.min_bounces {
         settings.estimator_min_bounces = p;
     }
-    if let Some(sh) = a.shard {
+    // The samples of this render part (`--shard`, `--samples`), if it is one.
+    let part_samples = match (a.shard, &a.samples) {
+        (Some(sh), _) => {
+            anyhow::ensure!(
+                sh.count <= settings.spp,
+                "--shard {sh}: {} shards of a {}-spp render would leave some without a sample; use at most {} shards (or more --spp)",
+                sh.count,
+                settings.spp,
+                settings.spp
+            );
+            Some(nppp_render::render_part::shard_samples(
+                sh.index,
+                sh.count,
+                settings.spp,
+            ))
+        }
+        (None, Some(r)) => {
+            anyhow::ensure!(
+                r.end <= settings.spp,
+                "--samples {}..{}: the render has {} samples per pixel (0..{})",
+                r.start,
+                r.end,
+                settings.spp,
+                settings.spp
+            );
+            Some(r.clone())
+        }
+        (None, None) => None,
+    };
+    if part_samples.is_some() {
         check_film_memory(scene.camera.width, scene.camera.height)?;
-        anyhow::ensure!(
-            sh.count <= settings.spp,
-            "--shard {sh}: {} shards of a {}-spp render would leave some without a sample; use at most {} shards (or more --spp)",
-            sh.count,
-            settings.spp,
-            settings.spp
-        );
     }
     let has_estimators = scene.instances.iter().any(|i| i.estimator.is_some());
     if has_estimators
@@ -437,8 +464,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         seed: settings.seed,
         progress: !a.quiet,
     };
-    if let Some(sh) = a.shard {
-        let samples = nppp_render::render_part::shard_samples(sh.index, sh.count, settings.spp);
+    if let Some(samples) = part_samples {
         // Read (the estimator files' hashes) before the render, not after it.
         let part_settings = part_settings(a, &scene, &rs, auto_choices)?;
         let (film, stats) = nppp_render::render_film(&rs, &opts, samples.clone());
@@ -457,9 +483,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         };
         nppp_render::render_part::write_part(&a.out, &header, &film)?;
         eprintln!(
-            "{}: shard {} (samples {}..{} of {}) of {}x{} M {} in {:.2}s (scene build {:.2}s){}",
+            "{}: render part (samples {}..{} of {}) of {}x{} M {} in {:.2}s (scene build {:.2}s){}",
             a.out.display(),
-            sh,
             samples.start,
             samples.end,
             settings.spp,
@@ -560,6 +585,25 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// `START..END` (`--samples`): a non-empty range of sample indices.
+fn parse_samples(s: &str) -> Result<std::ops::Range<u32>, String> {
+    let (a, b) = s
+        .split_once("..")
+        .ok_or_else(|| format!("\"{s}\": give START..END, e.g. 0..48 (END not included)"))?;
+    let num = |t: &str| {
+        t.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("\"{s}\": \"{t}\" is not a whole number"))
+    };
+    let (a, b) = (num(a)?, num(b)?);
+    if a >= b {
+        return Err(format!(
+            "\"{s}\": START must be below END (the range holds no sample)"
+        ));
+    }
+    Ok(a..b)
 }
 
 /// A render part holds its film in memory twice over while it is written

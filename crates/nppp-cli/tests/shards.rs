@@ -133,6 +133,31 @@ fn merge_writes_the_same_preview() {
     assert!(std::fs::read(&mpng).unwrap() == std::fs::read(&png).unwrap());
 }
 
+/// `--samples` ranges of one's choice (unequal machines), mixed with a
+/// `--shard` part, merge into the single render too.
+#[test]
+fn explicit_sample_ranges_merge_into_the_same_bytes() {
+    let dir = scratch("samples");
+    let scene = repo("data/scenes/cornell-glass.json");
+    let off = ["--estimators", "off"];
+    let whole = dir.join("whole.exr");
+    assert_ok("whole", &render(&scene, &off, &whole, None));
+    let a = dir.join("a.nppr");
+    assert_ok("shard 0/2", &render(&scene, &off, &a, Some((0, 2))));
+    let mut parts = vec![a];
+    for (name, range) in [("b.nppr", "3..4"), ("c.nppr", "4..6")] {
+        let p = dir.join(name);
+        let mut flags = off.to_vec();
+        flags.extend(["--samples", range]);
+        assert_ok(range, &render(&scene, &flags, &p, None));
+        parts.push(p);
+    }
+    parts.reverse();
+    let merged = dir.join("merged.exr");
+    assert_ok("merge", &merge(&parts, &merged));
+    assert!(std::fs::read(&merged).unwrap() == std::fs::read(&whole).unwrap());
+}
+
 #[test]
 fn merge_refuses_parts_of_other_renders_and_gaps() {
     let dir = scratch("refuse");
@@ -273,7 +298,7 @@ fn shard_flags_are_checked_before_rendering() {
     let part = dir.join("p.nppr");
     // (what, flags, --out, exit status, needles)
     type Case<'a> = (&'a str, Vec<&'a str>, PathBuf, i32, Vec<&'a str>);
-    let cases: [Case; 5] = [
+    let cases: [Case; 7] = [
         (
             "I = K",
             vec!["--shard", "6/6"],
@@ -301,6 +326,20 @@ fn shard_flags_are_checked_before_rendering() {
             dir.join("p.exr"),
             1,
             vec!["*.nppr"],
+        ),
+        (
+            "samples past spp",
+            vec!["--samples", "2..9"],
+            part.clone(),
+            1,
+            vec!["6 samples per pixel"],
+        ),
+        (
+            "empty samples",
+            vec!["--samples", "3..3"],
+            part.clone(),
+            2,
+            vec!["START must be below END"],
         ),
         (
             "with --png",
