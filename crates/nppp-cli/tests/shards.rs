@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 mod common;
-use common::{nppp, stderr};
+use common::{assert_ok, assert_refused, nppp};
 
 fn repo(rel: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -19,20 +19,6 @@ fn repo(rel: &str) -> PathBuf {
 
 fn scratch(name: &str) -> PathBuf {
     common::scratch("shards", name)
-}
-
-fn assert_ok(what: &str, o: &Output) {
-    assert_eq!(o.status.code(), Some(0), "{what} failed:\n{}", stderr(o));
-}
-
-/// Exit status 1 (or clap's 2), no panic, every needle on stderr.
-fn assert_refused(what: &str, o: &Output, code: i32, needles: &[&str]) {
-    let err = stderr(o);
-    assert!(!err.contains("panicked"), "{what}: panicked:\n{err}");
-    assert_eq!(o.status.code(), Some(code), "{what}:\n{err}");
-    for n in needles {
-        assert!(err.contains(n), "{what}: stderr lacks {n:?}:\n{err}");
-    }
 }
 
 const SPP: u32 = 6;

@@ -7,10 +7,9 @@
 
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
-use std::process::Output;
 
 mod common;
-use common::{SMALL_TRAIN_FLAGS, nppp, stderr};
+use common::{SMALL_TRAIN_FLAGS, assert_ok, assert_refused, nppp, stderr, stdout};
 
 fn file(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -20,30 +19,6 @@ fn file(name: &str) -> PathBuf {
 
 fn scratch(name: &str) -> PathBuf {
     common::scratch("user-flow", name)
-}
-
-fn stdout(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
-
-fn assert_ok(what: &str, o: &Output) {
-    assert_eq!(
-        o.status.code(),
-        Some(0),
-        "{what} failed:\n{}{}",
-        stdout(o),
-        stderr(o)
-    );
-}
-
-/// Exit status `code`, no panic, every needle on stderr.
-fn assert_refused(what: &str, o: &Output, code: i32, needles: &[&str]) {
-    let err = stderr(o);
-    assert!(!err.contains("panicked"), "{what}: panicked:\n{err}");
-    assert_eq!(o.status.code(), Some(code), "{what}:\n{err}");
-    for n in needles {
-        assert!(err.contains(n), "{what}: stderr lacks {n:?}:\n{err}");
-    }
 }
 
 /// `nppp render SCENE --quiet --out EXR [--png PNG] EXTRA...`.

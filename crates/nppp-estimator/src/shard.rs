@@ -91,37 +91,31 @@ pub fn merge_datasets(parts: &[&Path], out: &Path) -> Result<DatasetSummary, Dat
             )));
         }
     }
-    readers.sort_by_key(|(_, s, _)| (s.first_ray, s.end_ray));
-    let mut covered = 0u64;
-    for (i, (p, s, _)) in readers.iter().enumerate() {
-        if s.first_ray > covered {
+    let ranges: Vec<Range<u64>> = readers.iter().map(|(_, s, _)| s.first_ray..s.end_ray).collect();
+    match check_cover(&ranges, first_shard.rays) {
+        Ok(()) => {}
+        Err(CoverError::Gap(g)) => {
             return Err(merge_err(format!(
-                "rays {covered}..{} of the {} are in no part: generate them with --shard (or name the missing part)",
-                s.first_ray, first_shard.rays
+                "rays {}..{} of the {} are in no part: generate them with --shard (or name the missing part)",
+                g.start, g.end, first_shard.rays
             )));
         }
-        if s.first_ray < covered {
-            let (q, t, _) = &readers[i - 1];
+        Err(CoverError::Overlap { a, b, overlap }) => {
+            let (pa, pb) = (readers[a].0, readers[b].0);
             return Err(merge_err(format!(
                 "{} (rays {}..{}) and {} (rays {}..{}) overlap: rays {}..{} would be in the data twice",
-                q.display(),
-                t.first_ray,
-                t.end_ray,
-                p.display(),
-                s.first_ray,
-                s.end_ray,
-                s.first_ray,
-                covered.min(s.end_ray)
+                pa.display(),
+                ranges[a].start,
+                ranges[a].end,
+                pb.display(),
+                ranges[b].start,
+                ranges[b].end,
+                overlap.start,
+                overlap.end
             )));
         }
-        covered = s.end_ray;
     }
-    if covered < first_shard.rays {
-        return Err(merge_err(format!(
-            "rays {covered}..{} of the {} are in no part: generate them with --shard (or name the missing part)",
-            first_shard.rays, first_shard.rays
-        )));
-    }
+    readers.sort_by_key(|(_, s, _)| (s.first_ray, s.end_ray));
     let options = WriterOptions { chunk_rays: first_shard.chunk_rays, compress: first_shard.compress };
     let mut w = DatasetWriter::create_with(out, first_header, options)?;
     for (_, _, r) in &mut readers {
@@ -131,6 +125,40 @@ pub fn merge_datasets(parts: &[&Path], out: &Path) -> Result<DatasetSummary, Dat
         }
     }
     w.finish()
+}
+
+/// Why parts do not hold each of `0..total` exactly once.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CoverError {
+    /// This range is in no part.
+    Gap(Range<u64>),
+    /// Parts `a` and `b` (indices into the list given) share `overlap`.
+    Overlap { a: usize, b: usize, overlap: Range<u64> },
+}
+
+/// Checks that `ranges`, in any order, cover `0..total` with each value in
+/// exactly one of them (render parts' samples, data shards' rays). Reports
+/// the first gap or overlap in increasing order.
+pub fn check_cover(ranges: &[Range<u64>], total: u64) -> Result<(), CoverError> {
+    let mut order: Vec<usize> = (0..ranges.len()).collect();
+    order.sort_by_key(|&i| (ranges[i].start, ranges[i].end));
+    let mut covered = 0u64;
+    let mut last: Option<usize> = None;
+    for &i in &order {
+        let r = &ranges[i];
+        if r.start > covered {
+            return Err(CoverError::Gap(covered..r.start));
+        }
+        if let Some(j) = last.filter(|_| r.start < covered) {
+            return Err(CoverError::Overlap { a: j, b: i, overlap: r.start..covered.min(r.end) });
+        }
+        covered = covered.max(r.end);
+        last = Some(i);
+    }
+    if covered < total {
+        return Err(CoverError::Gap(covered..total));
+    }
+    Ok(())
 }
 
 fn unsharded(h: &DatasetHeader) -> DatasetHeader {
@@ -175,5 +203,15 @@ mod tests {
         }
         assert!(shard_rays(0, 4, 10_000, 4096).unwrap_err().contains("at most 3 shards"));
         assert!(shard_rays(4, 4, 10_000, 4096).is_err());
+    }
+
+    #[test]
+    fn cover_finds_gaps_and_overlaps_in_any_order() {
+        assert_eq!(check_cover(&[4..6, 0..2, 2..4], 6), Ok(()));
+        assert_eq!(check_cover(&[4..6, 0..2], 6), Err(CoverError::Gap(2..4)));
+        assert_eq!(check_cover(&[0..2, 2..4], 6), Err(CoverError::Gap(4..6)));
+        assert_eq!(check_cover(&[], 3), Err(CoverError::Gap(0..3)));
+        assert_eq!(check_cover(&[2..6, 0..3], 6), Err(CoverError::Overlap { a: 1, b: 0, overlap: 2..3 }));
+        assert_eq!(check_cover(&[0..3, 0..2], 3), Err(CoverError::Overlap { a: 1, b: 0, overlap: 0..2 }));
     }
 }

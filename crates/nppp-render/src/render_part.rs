@@ -19,6 +19,7 @@
 //! then the dropped counts (u32 per pixel).
 
 use crate::film::PixelSum;
+use nppp_estimator::shard::{CoverError, check_cover};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::io::Read;
@@ -56,12 +57,6 @@ pub struct RenderPartHeader {
     pub settings: BTreeMap<String, String>,
     /// Time this part took (pilot included), for the merged report.
     pub seconds: f64,
-}
-
-impl RenderPartHeader {
-    fn range(&self) -> std::ops::Range<u32> {
-        self.samples[0]..self.samples[1]
-    }
 }
 
 /// The renderer a part came from: the version and the instruction-set
@@ -407,41 +402,32 @@ pub fn merge_parts(paths: &[PathBuf]) -> Result<MergedRender, RenderPartError> {
             )));
         }
     }
-    let mut order: Vec<usize> = (0..paths.len()).collect();
-    order.sort_by_key(|&i| (headers[i].samples[0], headers[i].samples[1]));
-    let mut covered = 0u32;
-    let mut last: Option<usize> = None;
-    for &i in &order {
-        let r = headers[i].range();
-        if r.start > covered {
+    let ranges: Vec<std::ops::Range<u64>> = headers
+        .iter()
+        .map(|h| u64::from(h.samples[0])..u64::from(h.samples[1]))
+        .collect();
+    match check_cover(&ranges, u64::from(first.spp)) {
+        Ok(()) => {}
+        Err(CoverError::Gap(g)) => {
             return Err(RenderPartError::Merge(format!(
-                "samples {covered}..{} of the {} are in no part: render them with --shard \
+                "samples {}..{} of the {} are in no part: render them with --shard or --samples \
                  (or name the missing part)",
-                r.start, first.spp
+                g.start, g.end, first.spp
             )));
         }
-        if r.start < covered {
-            let j = last.unwrap_or(i);
+        Err(CoverError::Overlap { a, b, overlap }) => {
             return Err(RenderPartError::Merge(format!(
                 "{} (samples {}..{}) and {} (samples {}..{}) overlap: samples {}..{} would count twice",
-                paths[j].display(),
-                headers[j].samples[0],
-                headers[j].samples[1],
-                paths[i].display(),
-                r.start,
-                r.end,
-                r.start,
-                covered.min(r.end)
+                paths[a].display(),
+                ranges[a].start,
+                ranges[a].end,
+                paths[b].display(),
+                ranges[b].start,
+                ranges[b].end,
+                overlap.start,
+                overlap.end
             )));
         }
-        covered = r.end;
-        last = Some(i);
-    }
-    if covered < first.spp {
-        return Err(RenderPartError::Merge(format!(
-            "samples {covered}..{} of the {} are in no part: render them with --shard (or name the missing part)",
-            first.spp, first.spp
-        )));
     }
     let mut film: Vec<PixelSum> = Vec::new();
     for p in paths {

@@ -42,6 +42,31 @@ pub fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
+pub fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// Exit status 0, else both outputs in the failure.
+pub fn assert_ok(what: &str, o: &Output) {
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "{what} failed:\n{}{}",
+        stdout(o),
+        stderr(o)
+    );
+}
+
+/// Exit status `code`, no panic, every needle on stderr.
+pub fn assert_refused(what: &str, o: &Output, code: i32, needles: &[&str]) {
+    let err = stderr(o);
+    assert!(!err.contains("panicked"), "{what}: panicked:\n{err}");
+    assert_eq!(o.status.code(), Some(code), "{what}:\n{err}");
+    for n in needles {
+        assert!(err.contains(n), "{what}: stderr lacks {n:?}:\n{err}");
+    }
+}
+
 /// `nppp train` flags of a seconds-long run: NdArray, tiny widths, 25-step
 /// epochs, seed 3 (the data, output and length are the caller's).
 pub const SMALL_TRAIN_FLAGS: &[&str] = &[
