@@ -1,11 +1,15 @@
 //! The estimator's hot paths on the committed default estimator
 //! (`models/cornell-knot.nppp`): latent and mask grid lookups (quadrilinear
-//! and stochastic, incoherent rays), and the decoder at several batch sizes, on the
-//! plain-Rust CPU decoder (row by row, and as the matrix products every
-//! batch takes) and on Burn's CPU backends.
+//! and stochastic, incoherent rays), and the decoder at several batch sizes
+//! through the estimator interface the renderer calls
+//! (`EstimatorSampler::sample_batch`: latent lookup, noise, decoder, inverse
+//! transform) and the decoder backends alone (`ExitDecoder::decode`): the
+//! plain-Rust CPU decoder and Burn's CPU backends.
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
-use nppp_estimator::{BakedEstimator, EXIT_FEATURES, EstimatorSampler, SamplerScratch};
+use nppp_estimator::{
+    BakedEstimator, DecodeRepairs, EXIT_FEATURES, EstimatorSampler, ExitBatch, ExitDecoder,
+};
 use nppp_geom::{SampleRng, SpherePair};
 use nppp_nn::BackendKind;
 use nppp_nn::decoder::BurnDecoder;
@@ -60,29 +64,59 @@ fn grids(c: &mut Criterion) {
     g.finish();
 }
 
+/// The decoder backends a render can pick (`--decoder`), on a CPU.
+fn backends(s: &EstimatorSampler) -> Vec<Box<dyn ExitDecoder>> {
+    let mut list: Vec<Box<dyn ExitDecoder>> = vec![Box::new(nppp_estimator::CpuDecoder::new(
+        &s.baked().decoder,
+    ))];
+    for backend in [BackendKind::Ndarray, BackendKind::Flex] {
+        list.push(Box::new(
+            BurnDecoder::new(&s.baked().decoder, backend).expect("burn decoder"),
+        ));
+    }
+    list
+}
+
 fn decoder(c: &mut Criterion) {
-    let s = sampler();
+    let mut s = sampler();
     let n = s.latent_dim() + s.noise_dim();
     let mut rng = SampleRng::from_seed(4);
+    let pairs = random_pairs(1024);
     let mut g = c.benchmark_group("estimator_decoder");
     for rows in [1usize, 64, 1024] {
         let input: Vec<f32> = (0..rows * n).map(|_| rng.normal()).collect();
         let mut out = vec![0.0f32; rows * EXIT_FEATURES];
         g.throughput(Throughput::Elements(rows as u64));
-        g.bench_with_input(BenchmarkId::new("cpu_row_by_row", rows), &rows, |b, _| {
-            let mut scratch = SamplerScratch::new(&s);
-            b.iter(|| s.forward_batch_with(&input, &mut out, &mut scratch))
-        });
-        g.bench_with_input(BenchmarkId::new("cpu_batched", rows), &rows, |b, _| {
-            b.iter(|| s.forward_batch(&input, &mut out))
-        });
-        for backend in [BackendKind::Ndarray, BackendKind::Flex] {
-            let dec = BurnDecoder::new(&s.baked().decoder, backend).expect("burn decoder");
+        for dec in backends(&s) {
             g.bench_with_input(
-                BenchmarkId::new(format!("burn_{backend}"), rows),
+                BenchmarkId::new(dec.name().to_string(), rows),
                 &rows,
-                |b, _| b.iter(|| dec.forward(&input, rows, &mut out).expect("forward")),
+                |b, _| b.iter(|| dec.decode(&input, rows, &mut out).expect("decode")),
             );
+        }
+    }
+    g.finish();
+    // The whole batch as the renderer runs it, per backend.
+    let mut g = c.benchmark_group("estimator_sample_batch");
+    for dec in backends(&s) {
+        let name = dec.name().to_string();
+        s.set_decoder(dec);
+        for rows in [1usize, 64, 1024] {
+            g.throughput(Throughput::Elements(rows as u64));
+            let mut batch = ExitBatch::default();
+            let mut repairs = DecodeRepairs::default();
+            let mut noise_rng = SampleRng::from_seed(6);
+            g.bench_with_input(BenchmarkId::new(&name, rows), &rows, |b, _| {
+                b.iter(|| {
+                    let fill = |k: usize, z: &mut [f32], r: &mut [f32]| {
+                        s.latent(&pairs[k], z);
+                        r.iter_mut().for_each(|x| *x = noise_rng.normal());
+                    };
+                    s.sample_batch(&mut batch, rows, fill, &mut repairs)
+                        .exits
+                        .len()
+                })
+            });
         }
     }
     g.finish();

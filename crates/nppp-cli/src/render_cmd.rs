@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use nppp_render::estimator::{
-    BatchDecoder, EntryMask, EntryNee, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
+    EntryMask, EntryNee, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
 };
 use nppp_render::{RenderOptions, RenderScene, image_io};
 use std::path::{Path, PathBuf};
@@ -150,20 +150,6 @@ pub enum DecoderChoice {
     BurnWgpu,
 }
 
-/// The Burn decoder behind the renderer's batch interface.
-struct BurnBatch(nppp_nn::decoder::BurnDecoder);
-
-impl BatchDecoder for BurnBatch {
-    fn decode(&self, input: &[f32], rows: usize, output: &mut [f32]) -> Result<(), String> {
-        self.0
-            .forward(input, rows, output)
-            .map_err(|e| e.to_string())
-    }
-    fn name(&self) -> &str {
-        "burn"
-    }
-}
-
 fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
     let backend = match choice {
         DecoderChoice::Cpu => return Ok(()),
@@ -172,11 +158,9 @@ fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
         DecoderChoice::BurnWgpu => nppp_nn::BackendKind::Wgpu,
     };
     for e in &mut ests.list {
-        if let EstimatorModel::Neural { sampler, decoder } = &mut e.model {
-            *decoder = Some(Box::new(BurnBatch(nppp_nn::decoder::BurnDecoder::new(
-                &sampler.baked().decoder,
-                backend,
-            )?)));
+        if let EstimatorModel::Neural { sampler } = &mut e.model {
+            let burn = nppp_nn::decoder::BurnDecoder::new(&sampler.baked().decoder, backend)?;
+            sampler.set_decoder(Box::new(burn));
         }
     }
     Ok(())

@@ -5,7 +5,7 @@
 
 use nppp_estimator::dataset::{DatasetHeader, DatasetWriter, RayRecord, WriterOptions};
 use nppp_estimator::{
-    BakedEstimator, Dense, EXIT_FEATURES, EstimatorMeta, EstimatorSampler, Exit, ExitTransform, QuantizedGrid, SamplerScratch,
+    BakedEstimator, Dense, EXIT_FEATURES, EstimatorMeta, EstimatorSampler, Exit, ExitBatch, ExitTransform, QuantizedGrid,
 };
 use nppp_geom::{BoundingSphere, SampleRng, SpherePair, Vec3};
 use std::hint::black_box;
@@ -103,17 +103,19 @@ fn grid_speed() {
     };
     let est = BakedEstimator::from_f32_grids(meta, res, &values, res, &values[..n], 8, decoder, ExitTransform::default()).unwrap();
     let s = EstimatorSampler::new(est);
-    let mut scratch = SamplerScratch::new(&s);
     let mut rep = Default::default();
     let r: Vec<f32> = (0..16 * 4096).map(|_| rng.normal()).collect();
-    let mut outs = vec![Exit::default(); 4096];
+    let mut batch = ExitBatch::default();
     let t = Instant::now();
     let mut n_s = 0;
     for chunk in pairs.chunks(4096).take(64) {
-        s.sample_batch_with(chunk, &r, &mut outs, &mut scratch, &mut rep);
+        let fill = |k: usize, z: &mut [f32], noise: &mut [f32]| {
+            s.latent(&chunk[k], z);
+            noise.copy_from_slice(&r[k * 16..(k + 1) * 16]);
+        };
+        black_box(s.sample_batch(&mut batch, chunk.len(), fill, &mut rep).exits);
         n_s += chunk.len();
     }
-    black_box(&outs);
     let dt = t.elapsed().as_secs_f64();
     let rows = 1 << 16;
     let inputs: Vec<f32> = (0..rows * 32).map(|_| rng.normal()).collect();
@@ -122,11 +124,11 @@ fn grid_speed() {
     s.baked().decoder.forward_batch(&inputs, &mut y);
     let d_ref = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    s.forward_batch(&inputs, &mut y);
+    s.cpu_decoder().forward(&inputs, &mut y);
     let d_fast = t.elapsed().as_secs_f64();
     black_box(&y);
     println!(
-        "decoder only: Mlp::forward_batch {:.2} M rows/s, EstimatorSampler::forward_batch {:.2} M rows/s",
+        "decoder only: Mlp::forward_batch {:.2} M rows/s, CpuDecoder::forward {:.2} M rows/s",
         rows as f64 / d_ref / 1e6,
         rows as f64 / d_fast / 1e6
     );

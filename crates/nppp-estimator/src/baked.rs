@@ -695,10 +695,9 @@ pub(crate) mod tests {
             if let Ok(est) = BakedEstimator::from_bytes(&b, Path::new("fuzz.nppp"))
                 && let Ok(s) = crate::EstimatorSampler::try_new(est)
             {
-                let mut scratch = crate::SamplerScratch::new(&s);
                 let mut rep = crate::DecodeRepairs::default();
                 let r = vec![0.5f32; s.noise_dim()];
-                let e = s.sample(&nppp_geom::SpherePair(u), &r, &mut scratch, &mut rep);
+                let e = s.sample(&nppp_geom::SpherePair(u), &r, &mut rep);
                 proptest::prop_assert!(e.position.is_finite() && e.direction.is_finite());
                 proptest::prop_assert!(e.throughput.is_finite() && e.radiance.is_finite());
             }

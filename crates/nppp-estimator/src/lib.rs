@@ -1,10 +1,13 @@
 //! The estimator's data and runtime, free of any training stack: the exit
 //! sample and its learning transform, the training-data file and its shards, the baked
-//! `.nppp` file (quantized 4D latent and mask grids plus decoder weights) and
-//! the CPU sampler the renderer calls.
+//! `.nppp` file (quantized 4D latent and mask grids plus decoder weights), and
+//! the estimator interface every caller uses: [`EstimatorSampler`] (mask,
+//! latent lookup, one batched decode path) over an [`ExitDecoder`] backend
+//! (plain Rust here; nppp-nn implements it for Burn).
 
 pub mod baked;
 pub mod dataset;
+pub mod decoder;
 pub mod exit;
 pub mod grid;
 pub mod mlp;
@@ -21,10 +24,11 @@ pub const SPHERE_MARGIN: f32 = 0.01;
 
 pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
 pub use dataset::{DatasetError, DatasetHeader, DatasetReader, DatasetSummary, DatasetWriter, RayRecord, WriterOptions};
+pub use decoder::{CpuDecoder, ExitDecoder};
 pub use exit::{
     DecodeRepairs, EXIT_FEATURES, EXIT_THROUGHPUT_BOUND, EXIT_THROUGHPUT_BOUND_MEDIUM, Exit, ExitTransform, exit_throughput_bound,
 };
 pub use grid::{QuantizedGrid, node_coords, node_count};
 pub use mlp::{Dense, Mlp};
 pub use quant::{QuantError, dequantize, quantize};
-pub use sampler::{EstimatorSampler, SamplerScratch};
+pub use sampler::{DecodedBatch, EstimatorSampler, ExitBatch};

@@ -1,98 +1,49 @@
 //! The estimator at render time: mask lookup, latent lookup, decoder, and the
 //! inverse output transform, for rays already in the unit sphere's frame.
 //!
-//! Everything is read-only after construction, so one sampler is shared by
-//! all render threads; per-thread state lives in [`SamplerScratch`] so that
-//! no call allocates.
+//! [`EstimatorSampler::sample_batch`] is the one way exits are decoded: the
+//! renderer's wavefront, bake's evaluation of the baked file and the
+//! benchmarks all call it, whatever decoder backend runs the network
+//! ([`crate::decoder`]). Everything is read-only after construction, so one
+//! sampler is shared by all render threads; each caller keeps its own
+//! [`ExitBatch`] so that batches do not allocate once its buffers have grown.
 
 use crate::baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
+use crate::decoder::{CpuDecoder, ExitDecoder};
 use crate::exit::{DecodeRepairs, EXIT_FEATURES, Exit};
-use nppp_geom::{Ray, SpherePair};
+use nppp_geom::SpherePair;
 
 pub struct EstimatorSampler {
     baked: BakedEstimator,
-    /// The decoder with transposed weights (see [`FastLayer`]).
-    layers: Vec<FastLayer>,
+    /// The plain-Rust decoder: the default, and the fallback when `backend`
+    /// fails on a batch.
+    cpu: CpuDecoder,
+    /// Another decoder backend, when one was attached.
+    backend: Option<Box<dyn ExitDecoder>>,
     latent_dim: usize,
     noise_dim: usize,
-    mlp_scratch: usize,
     /// The most throughput per channel a decoded exit keeps
     /// ([`crate::exit_throughput_bound`]): the file does not record the
     /// material, so whoever knows it sets this (1, a surface, by default).
     pub throughput_bound: f32,
 }
 
-/// A decoder layer stored `[inputs][outputs]`. `Mlp::forward_into` computes
-/// each output as a dot product, a serial chain of dependent adds; here each
-/// input adds a scaled weight row to all outputs at once, which vectorizes
-/// and skips the inputs that ReLU zeroed. Same sums, different order: equal
-/// to `Mlp::forward_into` within float rounding, not bit for bit.
-#[derive(Clone, Debug)]
-struct FastLayer {
-    inputs: usize,
-    outputs: usize,
-    weight_t: Vec<f32>,
-    bias: Vec<f32>,
-    relu: bool,
+/// Reusable buffers of [`EstimatorSampler::sample_batch`].
+#[derive(Clone, Debug, Default)]
+pub struct ExitBatch {
+    inputs: Vec<f32>,
+    features: Vec<f32>,
+    exits: Vec<Exit>,
 }
 
-impl FastLayer {
-    fn from_mlp(mlp: &crate::mlp::Mlp) -> Vec<Self> {
-        let last = mlp.layers.len().saturating_sub(1);
-        mlp.layers
-            .iter()
-            .enumerate()
-            .map(|(li, l)| {
-                let mut weight_t = vec![0.0; l.inputs * l.outputs];
-                for o in 0..l.outputs {
-                    for i in 0..l.inputs {
-                        weight_t[i * l.outputs + o] = l.weight[o * l.inputs + i];
-                    }
-                }
-                Self { inputs: l.inputs, outputs: l.outputs, weight_t, bias: l.bias.clone(), relu: li < last }
-            })
-            .collect()
-    }
-}
-
-/// Runs the layers on one row held in `buf[..inputs]`; returns the output's
-/// position in `buf` (the first or the second half).
-#[inline]
-fn forward_fast(layers: &[FastLayer], buf: &mut [f32]) -> usize {
-    let half = buf.len() / 2;
-    let (mut a, mut b) = buf.split_at_mut(half);
-    let mut in_second = false;
-    for l in layers {
-        let next = &mut b[..l.outputs];
-        next.copy_from_slice(&l.bias);
-        for (&x, row) in a[..l.inputs].iter().zip(l.weight_t.chunks_exact(l.outputs)) {
-            if x != 0.0 {
-                for (n, &w) in next.iter_mut().zip(row) {
-                    *n += x * w;
-                }
-            }
-        }
-        if l.relu {
-            next.iter_mut().for_each(|v| *v = v.max(0.0));
-        }
-        std::mem::swap(&mut a, &mut b);
-        in_second = !in_second;
-    }
-    if in_second { half } else { 0 }
-}
-
-/// Per-thread buffers for [`EstimatorSampler::sample`].
-#[derive(Clone, Debug)]
-pub struct SamplerScratch {
-    output: [f32; EXIT_FEATURES],
-    /// Two layer-width halves; the first starts as the decoder input `[z, r]`.
-    mlp: Vec<f32>,
-}
-
-impl SamplerScratch {
-    pub fn new(sampler: &EstimatorSampler) -> Self {
-        Self { output: [0.0; EXIT_FEATURES], mlp: vec![0.0; sampler.mlp_scratch] }
-    }
+/// What [`EstimatorSampler::sample_batch`] gives back.
+#[derive(Debug)]
+pub struct DecodedBatch<'a> {
+    /// One exit per row, in the unit sphere's frame.
+    pub exits: &'a [Exit],
+    /// The attached decoder backend failed on this batch and the CPU decoder
+    /// answered it instead (renders count these).
+    pub fell_back: bool,
 }
 
 impl EstimatorSampler {
@@ -110,9 +61,25 @@ impl EstimatorSampler {
         baked.check().map_err(EstimatorFileError::Build)?;
         let latent_dim = baked.meta.latent_dim as usize;
         let noise_dim = baked.meta.noise_dim as usize;
-        let mlp_scratch = 2 * baked.decoder.max_width();
-        let layers = FastLayer::from_mlp(&baked.decoder);
-        Ok(Self { baked, layers, latent_dim, noise_dim, mlp_scratch, throughput_bound: crate::EXIT_THROUGHPUT_BOUND })
+        let cpu = CpuDecoder::new(&baked.decoder);
+        Ok(Self { baked, cpu, backend: None, latent_dim, noise_dim, throughput_bound: crate::EXIT_THROUGHPUT_BOUND })
+    }
+
+    /// Runs the decoder on `backend` instead of the CPU decoder (which still
+    /// answers any batch the backend fails on). The backend must implement
+    /// this file's decoder (`baked().decoder`).
+    pub fn set_decoder(&mut self, backend: Box<dyn ExitDecoder>) {
+        self.backend = Some(backend);
+    }
+
+    /// The name of the decoder that answers batches.
+    pub fn decoder_name(&self) -> &str {
+        self.backend.as_deref().map_or(self.cpu.name(), |b| b.name())
+    }
+
+    /// The plain-Rust decoder (for measuring it alone).
+    pub fn cpu_decoder(&self) -> &CpuDecoder {
+        &self.cpu
     }
 
     pub fn baked(&self) -> &BakedEstimator {
@@ -127,7 +94,7 @@ impl EstimatorSampler {
         self.latent_dim
     }
 
-    /// How many standard normals `sample` consumes per ray.
+    /// How many standard normals each exit consumes.
     pub fn noise_dim(&self) -> usize {
         self.noise_dim
     }
@@ -166,131 +133,67 @@ impl EstimatorSampler {
         self.baked.latent.lookup_stochastic(pair, u, out);
     }
 
-    /// One exit for the chord `pair`, driven by `r` (`noise_dim` standard
-    /// normals; panics if shorter). The exit is in the unit sphere's frame.
-    pub fn sample(&self, pair: &SpherePair, r: &[f32], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) -> Exit {
-        let (z, noise) = scratch.mlp[..self.latent_dim + self.noise_dim].split_at_mut(self.latent_dim);
-        self.baked.latent.interpolate(pair, z);
-        noise.copy_from_slice(&r[..self.noise_dim]);
-        let at = forward_fast(&self.layers, &mut scratch.mlp);
-        scratch.output.copy_from_slice(&scratch.mlp[at..at + EXIT_FEATURES]);
-        self.baked.transform.decode(&scratch.output, self.baked.meta.max_internal_bounces, self.throughput_bound, repairs)
-    }
-
-    /// The decoder's raw output (standardized features) for one input row
-    /// `[z, r]`; what [`Self::sample`] feeds to the inverse transform.
-    pub fn decode_features(&self, input: &[f32], scratch: &mut SamplerScratch) -> [f32; EXIT_FEATURES] {
-        let n = self.latent_dim + self.noise_dim;
-        scratch.mlp[..n].copy_from_slice(&input[..n]);
-        let at = forward_fast(&self.layers, &mut scratch.mlp);
-        let mut f = [0.0; EXIT_FEATURES];
-        f.copy_from_slice(&scratch.mlp[at..at + EXIT_FEATURES]);
-        f
-    }
-
-    /// The decoder on `rows` rows of `[z, r]` stored contiguously, giving
-    /// `EXIT_FEATURES` standardized features per row: `Mlp::forward_batch`
-    /// with the faster layer order (equal within float rounding). For a
-    /// wavefront that fills the decoder inputs itself.
-    ///
-    /// Each layer runs as one matrix product (`matrixmultiply`, which picks
-    /// AVX/FMA kernels at run time): several times faster than row by row on
-    /// the wavefront's batches of hundreds of entries. Every batch, however
-    /// small, takes this path, so each row's result does not depend on the
-    /// other rows of its batch nor on their number: a render's pixels are
-    /// the same bits however its entries batch up (thread counts, render
-    /// shards that split a tile's samples differently).
-    pub fn forward_batch(&self, input: &[f32], output: &mut [f32]) {
-        let n = self.latent_dim + self.noise_dim;
-        let rows = (input.len() / n).min(output.len() / EXIT_FEATURES);
-        if rows == 0 {
-            return;
-        }
-        let width = self.layers.iter().map(|l| l.outputs).max().unwrap_or(0).max(n);
-        let mut a = vec![0.0f32; rows * width];
-        let mut b = vec![0.0f32; rows * width];
-        a[..rows * n].copy_from_slice(&input[..rows * n]);
-        for l in &self.layers {
-            let (k, m) = (l.inputs, l.outputs);
-            let c = &mut b[..rows * m];
-            for row in c.chunks_exact_mut(m) {
-                row.copy_from_slice(&l.bias);
-            }
-            // C (rows x m) += A (rows x k) * W^T (k x m), all row-major.
-            // SAFETY: `a` holds rows x k floats (the previous layer's
-            // outputs or the input), `weight_t` k x m, `c` rows x m; the
-            // strides below describe exactly those dense row-major layouts,
-            // and `c` does not alias `a` or the weights.
-            unsafe {
-                matrixmultiply::sgemm(
-                    rows,
-                    k,
-                    m,
-                    1.0,
-                    a.as_ptr(),
-                    k as isize,
-                    1,
-                    l.weight_t.as_ptr(),
-                    m as isize,
-                    1,
-                    1.0,
-                    c.as_mut_ptr(),
-                    m as isize,
-                    1,
-                );
-            }
-            if l.relu {
-                c.iter_mut().for_each(|v| *v = v.max(0.0));
-            }
-            std::mem::swap(&mut a, &mut b);
-        }
-        output[..rows * EXIT_FEATURES].copy_from_slice(&a[..rows * EXIT_FEATURES]);
-    }
-
-    pub fn forward_batch_with(&self, input: &[f32], output: &mut [f32], scratch: &mut SamplerScratch) {
-        let n = self.latent_dim + self.noise_dim;
-        for (x, y) in input.chunks_exact(n).zip(output.chunks_exact_mut(EXIT_FEATURES)) {
-            scratch.mlp[..n].copy_from_slice(x);
-            let at = forward_fast(&self.layers, &mut scratch.mlp);
-            y.copy_from_slice(&scratch.mlp[at..at + EXIT_FEATURES]);
-        }
-    }
-
-    /// [`Self::sample`] for a ray given in the unit sphere's frame; `None`
-    /// when its line misses the sphere. The mask is not consulted.
-    pub fn sample_ray(&self, ray: &Ray, r: &[f32], scratch: &mut SamplerScratch, repairs: &mut DecodeRepairs) -> Option<Exit> {
-        let (pair, _) = SpherePair::from_ray(ray)?;
-        Some(self.sample(&pair, r, scratch, repairs))
-    }
-
-    /// One exit per pair; `r` holds `noise_dim` normals per pair, row after
-    /// row. This is the wavefront entry point: one call per gathered batch.
-    pub fn sample_batch(&self, pairs: &[SpherePair], r: &[f32], out: &mut [Exit], repairs: &mut DecodeRepairs) {
-        let mut scratch = SamplerScratch::new(self);
-        self.sample_batch_with(pairs, r, out, &mut scratch, repairs);
-    }
-
-    /// [`Self::sample_batch`] without even the per-batch scratch allocation.
-    pub fn sample_batch_with(
+    /// Decodes `rows` exits in one decoder call: the estimator's one decode
+    /// path. `fill(row, z, r)` writes row `row`'s decoder input, its latent
+    /// `z` (`latent_dim` floats: [`Self::latent`] or
+    /// [`Self::latent_stochastic`] of the row's chord) and its noise `r`
+    /// (`noise_dim` standard normals); it is called for rows 0, 1, ... in
+    /// order, so a caller may draw from one stream. The decoder then runs on
+    /// all rows (the attached backend, or the CPU decoder, which also
+    /// answers a batch the backend fails on), and each row's features go
+    /// through the file's inverse transform (repairs counted in `repairs`).
+    pub fn sample_batch<'b>(
         &self,
-        pairs: &[SpherePair],
-        r: &[f32],
-        out: &mut [Exit],
-        scratch: &mut SamplerScratch,
+        batch: &'b mut ExitBatch,
+        rows: usize,
+        mut fill: impl FnMut(usize, &mut [f32], &mut [f32]),
         repairs: &mut DecodeRepairs,
-    ) {
-        assert!(out.len() >= pairs.len(), "sample_batch: {} outputs for {} pairs", out.len(), pairs.len());
-        assert!(
-            r.len() >= pairs.len() * self.noise_dim,
-            "sample_batch: {} normals for {} pairs x {}",
-            r.len(),
-            pairs.len(),
-            self.noise_dim
-        );
-        let nd = self.noise_dim;
-        for (i, (pair, o)) in pairs.iter().zip(out.iter_mut()).enumerate() {
-            *o = self.sample(pair, &r[i * nd..(i + 1) * nd], scratch, repairs);
+    ) -> DecodedBatch<'b> {
+        let (ld, width) = (self.latent_dim, self.latent_dim + self.noise_dim);
+        batch.inputs.clear();
+        batch.inputs.resize(rows * width, 0.0);
+        for (k, row) in batch.inputs.chunks_exact_mut(width).enumerate() {
+            let (z, r) = row.split_at_mut(ld);
+            fill(k, z, r);
         }
+        batch.features.clear();
+        batch.features.resize(rows * EXIT_FEATURES, 0.0);
+        let mut fell_back = false;
+        match &self.backend {
+            Some(backend) => {
+                if backend.decode(&batch.inputs, rows, &mut batch.features).is_err() {
+                    fell_back = true;
+                    self.cpu.forward(&batch.inputs, &mut batch.features);
+                }
+            }
+            None => self.cpu.forward(&batch.inputs, &mut batch.features),
+        }
+        let max_b = self.baked.meta.max_internal_bounces;
+        batch.exits.clear();
+        batch.exits.extend(batch.features.chunks_exact(EXIT_FEATURES).map(|f| {
+            let f: &[f32; EXIT_FEATURES] = f.try_into().unwrap_or(&[0.0; EXIT_FEATURES]);
+            self.baked.transform.decode(f, max_b, self.throughput_bound, repairs)
+        }));
+        DecodedBatch { exits: &batch.exits, fell_back }
+    }
+
+    /// One exit for the chord `pair`, driven by `r` (`noise_dim` standard
+    /// normals; missing ones count as 0), through [`Self::sample_batch`].
+    /// Allocates a batch: for tools and tests, not for a loop over rays.
+    pub fn sample(&self, pair: &SpherePair, r: &[f32], repairs: &mut DecodeRepairs) -> Exit {
+        let mut batch = ExitBatch::default();
+        let decoded = self.sample_batch(
+            &mut batch,
+            1,
+            |_, z, noise| {
+                self.latent(pair, z);
+                for (x, &v) in noise.iter_mut().zip(r) {
+                    *x = v;
+                }
+            },
+            repairs,
+        );
+        decoded.exits[0]
     }
 }
 
@@ -298,7 +201,7 @@ impl EstimatorSampler {
 mod tests {
     use super::*;
     use crate::baked::tests::tiny_estimator;
-    use nppp_geom::Vec3;
+    use nppp_geom::{Ray, Vec3};
 
     fn assert_valid(e: &Exit, max_b: u32) {
         assert!((e.position.length() - 1.0).abs() < 1e-4, "{e:?}");
@@ -309,98 +212,106 @@ mod tests {
         assert!(e.bounces <= max_b);
     }
 
-    /// The matrix-product path gives each row the same bits whatever else is
-    /// in its batch (renders stay deterministic however entries batch up),
-    /// and agrees with the row-by-row path within float rounding.
-    #[test]
-    fn gemm_rows_do_not_depend_on_their_batch() {
-        let s = EstimatorSampler::new(tiny_estimator(4, 3, 8));
-        let n = s.latent_dim() + s.noise_dim();
-        let rows = 64;
-        let input: Vec<f32> = (0..rows * n).map(|k| ((k * 37 % 29) as f32 - 14.0) / 6.0).collect();
-        let mut all = vec![0.0f32; rows * EXIT_FEATURES];
-        s.forward_batch(&input, &mut all);
-        for (lo, hi) in [(10, 40), (0, 16), (47, 64), (0, 1), (5, 8), (63, 64)] {
-            let mut part = vec![0.0f32; (hi - lo) * EXIT_FEATURES];
-            s.forward_batch(&input[lo * n..hi * n], &mut part);
-            assert_eq!(part, all[lo * EXIT_FEATURES..hi * EXIT_FEATURES], "rows {lo}..{hi}");
-        }
-        let mut scratch = SamplerScratch::new(&s);
-        for k in 0..rows {
-            let one = s.decode_features(&input[k * n..(k + 1) * n], &mut scratch);
-            for (a, b) in one.iter().zip(&all[k * EXIT_FEATURES..(k + 1) * EXIT_FEATURES]) {
-                assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "row {k}: {a} vs {b}");
-            }
-        }
-    }
-
     #[test]
     fn is_send_and_sync() {
         fn check<T: Send + Sync>() {}
         check::<EstimatorSampler>();
-        check::<SamplerScratch>();
+        check::<ExitBatch>();
+    }
+
+    /// A backend that fails every batch, or answers with a fixed value.
+    struct TestBackend(Option<f32>);
+
+    impl ExitDecoder for TestBackend {
+        fn decode(&self, _: &[f32], rows: usize, output: &mut [f32]) -> Result<(), String> {
+            let v = self.0.ok_or("out of device memory")?;
+            output[..rows * EXIT_FEATURES].iter_mut().for_each(|x| *x = v);
+            Ok(())
+        }
+        fn name(&self) -> &str {
+            "test"
+        }
     }
 
     #[test]
     fn sample_matches_manual_pipeline() {
         let est = tiny_estimator(4, 3, 8);
         let s = EstimatorSampler::new(est.clone());
-        let mut scratch = SamplerScratch::new(&s);
         let mut rep = DecodeRepairs::default();
         let pair = SpherePair([0.3, 0.9, 0.6, 0.2]);
         let r = [0.5f32, -1.0, 2.0];
-        let e = s.sample(&pair, &r, &mut scratch, &mut rep);
+        let e = s.sample(&pair, &r, &mut rep);
         let mut z = [0.0f32; 4];
         est.latent.interpolate(&pair, &mut z);
         let input: Vec<f32> = z.iter().chain(&r).copied().collect();
         let mut f = [0.0f32; EXIT_FEATURES];
         est.decoder.forward_batch(&input, &mut f);
-        let fast = s.decode_features(&input, &mut scratch);
-        for (a, b) in fast.iter().zip(&f) {
-            assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{fast:?} vs {f:?}");
-        }
         let mut rep2 = DecodeRepairs::default();
         let want = est.transform.decode(&f, 64, crate::EXIT_THROUGHPUT_BOUND, &mut rep2);
         assert!(e.position.distance(want.position) < 1e-5 && e.direction.distance(want.direction) < 1e-5, "{e:?} {want:?}");
         assert!((e.throughput - want.throughput).abs().max_element() <= 1e-4 * (1.0 + want.throughput.max_element()));
         assert_eq!(e.bounces, want.bounces);
         assert_eq!(rep, rep2);
-        // The fast decoder against the reference `Mlp` on many inputs, with
-        // exact zeros (skipped inputs) among them.
-        for k in 0..200 {
-            let input: Vec<f32> = (0..7).map(|i| if (k + i) % 3 == 0 { 0.0 } else { ((k * 7 + i * 13) % 17) as f32 / 4.0 - 2.0 }).collect();
-            let mut f = [0.0f32; EXIT_FEATURES];
-            est.decoder.forward_batch(&input, &mut f);
-            let fast = s.decode_features(&input, &mut scratch);
-            for (a, b) in fast.iter().zip(&f) {
-                assert!((a - b).abs() <= 1e-5 * (1.0 + b.abs()), "{fast:?} vs {f:?}");
-            }
-        }
-        let inputs: Vec<f32> = (0..7 * 50).map(|k| ((k * 31 % 23) as f32 - 11.0) / 5.0).collect();
-        let mut a = vec![0.0f32; 13 * 50];
-        let mut b = vec![0.0f32; 13 * 50];
-        est.decoder.forward_batch(&inputs, &mut a);
-        s.forward_batch(&inputs, &mut b);
-        assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 1e-5 * (1.0 + x.abs())));
-        // Batch = loop.
+        // A batch gives each row what it gives alone, and calls `fill` in row order.
         let pairs = [pair, SpherePair([0.0, 0.0, 1.0, 0.5]), pair];
         let rs = [r, [0.0; 3], [1.0, 1.0, 1.0]].concat();
-        let mut out = [Exit::default(); 3];
-        let mut rep3 = DecodeRepairs::default();
-        s.sample_batch(&pairs, &rs, &mut out, &mut rep3);
-        assert_eq!(out[0], e);
-        assert_eq!(out[1], s.sample(&pairs[1], &rs[3..6], &mut scratch, &mut rep));
-        assert_eq!(out[2], s.sample(&pairs[2], &rs[6..9], &mut scratch, &mut rep));
+        let mut batch = ExitBatch::default();
+        let mut order = Vec::new();
+        let decoded = s.sample_batch(
+            &mut batch,
+            3,
+            |k, z, noise| {
+                order.push(k);
+                s.latent(&pairs[k], z);
+                noise.copy_from_slice(&rs[k * 3..k * 3 + 3]);
+            },
+            &mut rep,
+        );
+        assert!(!decoded.fell_back);
+        assert_eq!(decoded.exits.len(), 3);
+        assert_eq!(decoded.exits[0], e);
+        assert_eq!(decoded.exits[1], s.sample(&pairs[1], &rs[3..6], &mut rep));
+        assert_eq!(decoded.exits[2], s.sample(&pairs[2], &rs[6..9], &mut rep));
+        assert_eq!(order, [0, 1, 2]);
         // The mask: hits is the sign of the interpolated logit.
         for p in [pair, pairs[1]] {
             assert_eq!(s.hits(&p), s.mask_logit(&p) > 0.0);
         }
     }
 
+    /// An attached backend answers the batches; one that fails is replaced
+    /// by the CPU decoder for that batch, which says so.
+    #[test]
+    fn backends_answer_and_fall_back() {
+        let mut s = EstimatorSampler::new(tiny_estimator(4, 3, 8));
+        let mut rep = DecodeRepairs::default();
+        let pair = SpherePair([0.3, 0.9, 0.6, 0.2]);
+        let r = [0.5f32, -1.0, 2.0];
+        let cpu = s.sample(&pair, &r, &mut rep);
+        assert_eq!(s.decoder_name(), "cpu");
+        let fill = |_: usize, z: &mut [f32], noise: &mut [f32]| {
+            z.fill(0.1);
+            noise.copy_from_slice(&r);
+        };
+        let mut batch = ExitBatch::default();
+        let want = s.sample_batch(&mut batch, 2, fill, &mut rep).exits.to_vec();
+        s.set_decoder(Box::new(TestBackend(None)));
+        assert_eq!(s.decoder_name(), "test");
+        let got = s.sample_batch(&mut batch, 2, fill, &mut rep);
+        assert!(got.fell_back);
+        assert_eq!(got.exits, want);
+        assert_eq!(s.sample(&pair, &r, &mut rep), cpu);
+        s.set_decoder(Box::new(TestBackend(Some(0.0))));
+        let got = s.sample_batch(&mut batch, 2, fill, &mut rep);
+        assert!(!got.fell_back);
+        let mut rep2 = DecodeRepairs::default();
+        let zero = s.baked().transform.decode(&[0.0; EXIT_FEATURES], 64, s.throughput_bound, &mut rep2);
+        assert_eq!(got.exits, [zero, zero]);
+    }
+
     #[test]
     fn stress_rays_give_valid_exits() {
         let s = EstimatorSampler::new(tiny_estimator(4, 2, 4));
-        let mut scratch = SamplerScratch::new(&s);
         let mut rep = DecodeRepairs::default();
         let mut rays = vec![
             // Exactly tangent (chord of length 0).
@@ -420,12 +331,12 @@ mod tests {
             rays.push(Ray::new(Vec3::new(a.cos() * 3.0, a.sin() * 3.0, 0.3), -Vec3::new(a.cos(), a.sin(), 0.0)));
         }
         for ray in &rays {
-            let e = s.sample_ray(ray, &[0.3, -0.2], &mut scratch, &mut rep).expect("ray hits sphere");
+            let (pair, _) = SpherePair::from_ray(ray).expect("ray hits sphere");
+            let e = s.sample(&pair, &[0.3, -0.2], &mut rep);
             assert_valid(&e, 64);
-            let (pair, _) = SpherePair::from_ray(ray).unwrap();
             assert!(s.mask_logit(&pair).is_finite());
         }
-        assert!(s.sample_ray(&Ray::new(Vec3::new(0.0, 2.0, -5.0), Vec3::Z), &[0.0, 0.0], &mut scratch, &mut rep).is_none());
+        assert!(SpherePair::from_ray(&Ray::new(Vec3::new(0.0, 2.0, -5.0), Vec3::Z)).is_none());
         // Continuity across the v seam.
         let mut a = [0.0f32; 4];
         let mut b = [0.0f32; 4];
@@ -434,7 +345,7 @@ mod tests {
         assert!(a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-3));
         // Hostile pairs and noise.
         for p in [[f32::NAN; 4], [f32::INFINITY, -1.0, 2.0, f32::NEG_INFINITY], [1e30, -1e30, 0.5, 0.5]] {
-            let e = s.sample(&SpherePair(p), &[f32::NAN, 1e30], &mut scratch, &mut rep);
+            let e = s.sample(&SpherePair(p), &[f32::NAN, 1e30], &mut rep);
             assert_valid(&e, 64);
         }
     }
@@ -449,9 +360,8 @@ mod tests {
         last.weight.iter_mut().for_each(|w| *w = 0.0);
         last.bias = vec![0.0, 0.0, 0.0, 1e30, -1e30, 0.0, -50.0, 1e30, -1.0, 0.0, 0.0, 0.0, 1e3];
         let s = EstimatorSampler::new(est);
-        let mut scratch = SamplerScratch::new(&s);
         let mut rep = DecodeRepairs::default();
-        let e = s.sample(&SpherePair([0.5; 4]), &[0.0, 0.0], &mut scratch, &mut rep);
+        let e = s.sample(&SpherePair([0.5; 4]), &[0.0, 0.0], &mut rep);
         assert_valid(&e, 64);
         assert_eq!(e.bounces, 64);
         assert!(rep.degenerate >= 1 && rep.clamped >= 1, "{rep:?}");

@@ -12,7 +12,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
 use nppp_estimator::grid::{checked_node_count, node_coords};
 use nppp_estimator::{
-    BakedEstimator, DecodeRepairs, EstimatorMeta, EstimatorSampler, Exit, SamplerScratch,
+    BakedEstimator, DecodeRepairs, EstimatorMeta, EstimatorSampler, Exit, ExitBatch,
 };
 use nppp_geom::SpherePair;
 use serde::{Deserialize, Serialize};
@@ -218,10 +218,22 @@ fn eval_grid(
     Ok(out)
 }
 
-/// The baked estimator through the renderer's own sampler.
+/// The baked estimator through the estimator interface the renderer uses
+/// ([`EstimatorSampler::sample_batch`]).
 pub struct BakedSource {
     pub sampler: EstimatorSampler,
     pub repairs: DecodeRepairs,
+    batch: ExitBatch,
+}
+
+impl BakedSource {
+    pub fn new(sampler: EstimatorSampler) -> Self {
+        Self {
+            sampler,
+            repairs: DecodeRepairs::default(),
+            batch: ExitBatch::default(),
+        }
+    }
 }
 
 impl ExitSource for BakedSource {
@@ -236,22 +248,27 @@ impl ExitSource for BakedSource {
         k: usize,
         seed: u64,
     ) -> Result<Vec<Exit>> {
-        let nd = self.sampler.noise_dim();
-        let mut scratch = SamplerScratch::new(&self.sampler);
+        // Row i * k + j is pair i's j-th exit; a pair's k noise rows come
+        // from its own stream, the same r as the Burn side draws for this
+        // ray (eval_rng). Batches of about 16 k rows keep the decoder's
+        // buffers small.
+        let sampler = &self.sampler;
         let mut out = Vec::with_capacity(pairs.len() * k);
-        let mut noise = vec![0.0f32; k * nd];
-        for (i, p) in pairs.iter().enumerate() {
-            // The same r as the Burn side draws for this ray (eval_rng).
-            let mut rng = eval_rng(seed, first_index + i as u64);
-            noise.iter_mut().for_each(|x| *x = rng.normal());
-            for j in 0..k {
-                out.push(self.sampler.sample(
-                    p,
-                    &noise[j * nd..(j + 1) * nd],
-                    &mut scratch,
-                    &mut self.repairs,
-                ));
-            }
+        let per_batch = (16384 / k.max(1)).max(1);
+        for (c, chunk) in pairs.chunks(per_batch).enumerate() {
+            let first = first_index + (c * per_batch) as u64;
+            let mut rng = eval_rng(seed, first);
+            let fill = |row: usize, z: &mut [f32], noise: &mut [f32]| {
+                let (i, j) = (row / k, row % k);
+                if j == 0 {
+                    rng = eval_rng(seed, first + i as u64);
+                }
+                sampler.latent(&chunk[i], z);
+                noise.iter_mut().for_each(|x| *x = rng.normal());
+            };
+            let rows = chunk.len() * k;
+            let decoded = sampler.sample_batch(&mut self.batch, rows, fill, &mut self.repairs);
+            out.extend_from_slice(decoded.exits);
         }
         Ok(out)
     }
@@ -412,10 +429,7 @@ fn eval_pair(
     let mu = evaluate(&mut unbaked, heldout, k, tr, &opts)?;
     let mut sampler = EstimatorSampler::try_new(baked)?;
     sampler.throughput_bound = loaded.meta.dataset.exit_throughput_bound();
-    let mut bs = BakedSource {
-        sampler,
-        repairs: DecodeRepairs::default(),
-    };
+    let mut bs = BakedSource::new(sampler);
     let mb = evaluate(&mut bs, heldout, k, tr, &opts)?;
     Ok((mu, mb))
 }

@@ -1,8 +1,11 @@
 //! The baked decoder as a Burn module, for rendering: the renderer gathers
 //! every estimator query of a wavefront step and runs them as one batch, so
 //! the same module runs on a GPU (wgpu) when there is one and on a Burn CPU
-//! backend otherwise. The plain-Rust decoder in nppp-estimator is the
-//! default; this one must give the same numbers (tested).
+//! backend otherwise. It is a decoder backend of the estimator interface
+//! ([`nppp_estimator::ExitDecoder`], attached with
+//! `EstimatorSampler::set_decoder`); the plain-Rust decoder in
+//! nppp-estimator is the default, and this one must give the same numbers
+//! (tested).
 
 use crate::backend::BackendKind;
 use crate::model::MlpNet;
@@ -10,7 +13,7 @@ use anyhow::{Result, anyhow};
 use burn::module::Param;
 use burn::nn::Linear;
 use burn::tensor::{Device, Tensor, TensorData};
-use nppp_estimator::Mlp;
+use nppp_estimator::{ExitDecoder, Mlp};
 
 /// A decoder loaded into Burn on one device.
 pub struct BurnDecoder {
@@ -19,6 +22,8 @@ pub struct BurnDecoder {
     inputs: usize,
     outputs: usize,
     backend: BackendKind,
+    /// "burn-" and the backend, for reports.
+    name: String,
 }
 
 impl MlpNet {
@@ -58,6 +63,7 @@ impl BurnDecoder {
             inputs: mlp.inputs(),
             outputs: mlp.outputs(),
             backend,
+            name: format!("burn-{backend}"),
         })
     }
 
@@ -89,6 +95,16 @@ impl BurnDecoder {
             .map_err(|e| anyhow!("decoder output: {e:?}"))?;
         output[..rows * self.outputs].copy_from_slice(&y);
         Ok(())
+    }
+}
+
+impl ExitDecoder for BurnDecoder {
+    fn decode(&self, input: &[f32], rows: usize, output: &mut [f32]) -> Result<(), String> {
+        self.forward(input, rows, output).map_err(|e| e.to_string())
+    }
+
+    fn name(&self) -> &str {
+        &self.name
     }
 }
 

@@ -6,41 +6,31 @@
 //! the real mesh would have been hit (a miss skips the instance without
 //! touching its BLAS), and a hit whose chord is clear of other geometry
 //! becomes an *estimator entry*. Entries are gathered across the wavefront
-//! and answered in one batch (neural decoder or oracle walk), then each path
-//! continues from its exit.
+//! and answered in one batch ([`crate::entry`]: neural decoder, oracle walk
+//! or cost floor), then each path continues from its exit.
+//!
+//! This module holds what an estimator is and how a ray meets one; it does
+//! not know the render scene (which holds the estimators) nor the path
+//! state, so the modules stay acyclic (tests/module_graph.rs).
 
 use crate::accel::{Accel, SceneHit};
 use crate::bsdf::Bsdf;
 use crate::bvh4::Visit;
-use crate::object_walk::{ObjectTracer, Walk, WalkVertex};
-use crate::path::PathState;
+use crate::object_walk::WalkVertex;
 use crate::surface::SurfaceKind;
 use glam::Vec3;
-use nppp_estimator::{DecodeRepairs, EXIT_FEATURES, EstimatorSampler, Exit};
+use nppp_estimator::{DecodeRepairs, EstimatorSampler, Exit};
 use nppp_geom::sphere_pair::unit_sphere_chord;
 use nppp_geom::{BoundingSphere, Ray, SpherePair};
-
-/// Runs a decoder on many rows at once. The renderer calls it once per
-/// wavefront step, so a GPU or Burn implementation amortizes its overhead;
-/// the default runs the baked weights in plain Rust.
-pub trait BatchDecoder: Send + Sync {
-    /// `input` holds `rows` rows of `latent_dim + noise_dim` floats; writes
-    /// `rows` rows of `EXIT_FEATURES` floats to `output`. On an error the
-    /// renderer falls back to the CPU decoder for that batch and counts it.
-    fn decode(&self, input: &[f32], rows: usize, output: &mut [f32]) -> Result<(), String>;
-    fn name(&self) -> &str;
-}
 
 /// What answers an estimator query.
 // A scene holds a handful of these (one per estimator file), so the size of
 // the neural variant costs nothing worth a box.
 #[allow(clippy::large_enum_variant)]
 pub enum EstimatorModel {
-    /// A baked neural estimator; `decoder` overrides the CPU decoder.
-    Neural {
-        sampler: EstimatorSampler,
-        decoder: Option<Box<dyn BatchDecoder>>,
-    },
+    /// A baked neural estimator (its sampler runs whichever decoder backend
+    /// was attached to it, the CPU decoder by default).
+    Neural { sampler: EstimatorSampler },
     /// Ground truth: traces the object alone from the entry ray. Exact up to
     /// the interaction with other geometry inside the sphere, so it tests the
     /// integration independently of any network.
@@ -69,25 +59,6 @@ pub struct Estimator {
     pub min_bounces: u32,
     /// Next-event estimation through this estimator.
     pub entry_nee: EntryNee,
-}
-
-impl Estimator {
-    /// The real object alone, as the oracle walks it.
-    pub fn tracer<'a>(
-        &self,
-        scene: &'a crate::scene_data::RenderScene,
-        max_internal_bounces: u32,
-    ) -> ObjectTracer<'a> {
-        ObjectTracer {
-            blas: &scene.accel.blas[self.mesh],
-            surface: self.surface,
-            medium: self.medium,
-            sphere: self.sphere,
-            geo_normals: &scene.geo_normals[self.mesh],
-            shading_normals: scene.shading_normals[self.mesh].as_deref(),
-            max_internal_bounces,
-        }
-    }
 }
 
 /// All estimators of a scene and which instance uses which.
@@ -417,7 +388,7 @@ impl Estimators {
             EntryMask::Exact => true,
         };
         match &est.model {
-            EstimatorModel::Neural { sampler, .. } | EstimatorModel::CostFloor { sampler }
+            EstimatorModel::Neural { sampler } | EstimatorModel::CostFloor { sampler }
                 if !exact =>
             {
                 sampler.hits(pair)
@@ -427,172 +398,6 @@ impl Estimators {
                 accel.blas[est.mesh]
                     .intersect(o.into(), unit_ray.dir.into(), 0.0, f32::INFINITY)
                     .is_some()
-            }
-        }
-    }
-}
-
-/// Reusable buffers for answering a wavefront step's entries in batches.
-#[derive(Default)]
-pub struct EntryBatch {
-    /// (path index, entry)
-    pub entries: Vec<(usize, EstimatorEntry)>,
-    inputs: Vec<f32>,
-    outputs: Vec<f32>,
-    rows: Vec<usize>,
-    pub exits: Vec<Exit>,
-    /// Per entry, parallel to `exits`: the vertices the renderer still uses.
-    pub skipped: Vec<SkippedVertices>,
-    walk_vertices: Vec<WalkVertex>,
-}
-
-impl EntryBatch {
-    /// Answers every gathered entry: one decoder call per neural estimator,
-    /// one object walk per oracle entry, each drawing from its own path's stream.
-    pub fn answer(
-        &mut self,
-        ests: &Estimators,
-        scene: &crate::scene_data::RenderScene,
-        paths: &mut [PathState],
-        max_bounces: u32,
-        stats: &mut EstimatorStats,
-    ) {
-        self.exits.clear();
-        self.exits.resize(self.entries.len(), Exit::default());
-        self.skipped.clear();
-        self.skipped
-            .resize(self.entries.len(), SkippedVertices::default());
-        stats.entries += self.entries.len() as u64;
-        for (ei, est) in ests.list.iter().enumerate() {
-            self.rows.clear();
-            self.rows.extend(
-                self.entries
-                    .iter()
-                    .enumerate()
-                    .filter(|(_, (_, e))| ests.per_instance[e.instance as usize] == Some(ei as u32))
-                    .map(|(i, _)| i),
-            );
-            if self.rows.is_empty() {
-                continue;
-            }
-            match &est.model {
-                EstimatorModel::Neural { sampler, decoder } => {
-                    let (ld, nd) = (sampler.latent_dim(), sampler.noise_dim());
-                    let width = ld + nd;
-                    self.inputs.clear();
-                    self.inputs.resize(self.rows.len() * width, 0.0);
-                    for (k, &i) in self.rows.iter().enumerate() {
-                        let (path, entry) = &self.entries[i];
-                        let row = &mut self.inputs[k * width..(k + 1) * width];
-                        let rng = &mut paths[*path].rng;
-                        match ests.latent_lookup {
-                            LatentLookup::Interpolate => {
-                                sampler.latent(&entry.pair, &mut row[..ld])
-                            }
-                            LatentLookup::Stochastic => {
-                                let u =
-                                    [rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()];
-                                sampler.latent_stochastic(&entry.pair, u, &mut row[..ld]);
-                            }
-                        }
-                        for v in &mut row[ld..] {
-                            *v = rng.normal();
-                        }
-                    }
-                    self.outputs.clear();
-                    self.outputs.resize(self.rows.len() * EXIT_FEATURES, 0.0);
-                    match decoder {
-                        Some(dec) => {
-                            if dec
-                                .decode(&self.inputs, self.rows.len(), &mut self.outputs)
-                                .is_err()
-                            {
-                                stats.decoder_fallbacks += 1;
-                                sampler.forward_batch(&self.inputs, &mut self.outputs);
-                            }
-                        }
-                        None => sampler.forward_batch(&self.inputs, &mut self.outputs),
-                    }
-                    let tr = &sampler.baked().transform;
-                    let max_b = sampler.meta().max_internal_bounces;
-                    let bound = nppp_estimator::exit_throughput_bound(est.medium.is_some());
-                    for (k, &i) in self.rows.iter().enumerate() {
-                        let f: &[f32; EXIT_FEATURES] = self.outputs
-                            [k * EXIT_FEATURES..(k + 1) * EXIT_FEATURES]
-                            .try_into()
-                            .unwrap_or(&[0.0; EXIT_FEATURES]);
-                        self.exits[i] = tr.decode(f, max_b, bound, &mut stats.repairs);
-                    }
-                    if let (EntryNee::FirstVertex, SurfaceKind::Scatter(bsdf)) =
-                        (est.entry_nee, est.surface)
-                    {
-                        let tracer = est.tracer(scene, max_b);
-                        for &i in &self.rows {
-                            let (path, entry) = &self.entries[i];
-                            let budget = max_bounces.saturating_sub(paths[*path].depth);
-                            let first = tracer.first_vertex(&entry.ray);
-                            self.skipped[i] =
-                                first_vertex_skipped(first, bsdf, budget, &self.exits[i]);
-                        }
-                    }
-                }
-                EstimatorModel::CostFloor { .. } => {
-                    for &i in &self.rows {
-                        let entry = &self.entries[i].1;
-                        self.exits[i] = Exit {
-                            position: entry.pair.exit(),
-                            direction: entry.ray.dir,
-                            throughput: Vec3::ZERO,
-                            radiance: Vec3::ZERO,
-                            bounces: 0,
-                        };
-                    }
-                }
-                EstimatorModel::Oracle {
-                    max_internal_bounces,
-                } => {
-                    let mut tracer = est.tracer(scene, *max_internal_bounces);
-                    for &i in &self.rows {
-                        let (path, entry) = &self.entries[i];
-                        let path = &mut paths[*path];
-                        let budget = max_bounces.saturating_sub(path.depth);
-                        tracer.max_internal_bounces = budget.clamp(1, *max_internal_bounces);
-                        let walk = if est.entry_nee == EntryNee::Off {
-                            tracer.walk(&entry.ray, &mut path.rng)
-                        } else {
-                            let verts = &mut self.walk_vertices;
-                            verts.clear();
-                            tracer.walk_recording(&entry.ray, &mut path.rng, |v| verts.push(v))
-                        };
-                        self.exits[i] = match walk {
-                            Walk::Exit(e) => e,
-                            // The exact mask said hit, so the walk hits too; keep the path alive straight through.
-                            Walk::Miss => Exit {
-                                position: entry.pair.exit(),
-                                direction: entry.ray.dir,
-                                throughput: Vec3::ONE,
-                                radiance: Vec3::ZERO,
-                                bounces: 0,
-                            },
-                        };
-                        if let SurfaceKind::Scatter(bsdf) = est.surface {
-                            let verts = &self.walk_vertices;
-                            self.skipped[i] = match est.entry_nee {
-                                EntryNee::Off => SkippedVertices::default(),
-                                EntryNee::FirstVertex => first_vertex_skipped(
-                                    verts.first().copied(),
-                                    bsdf,
-                                    budget,
-                                    &self.exits[i],
-                                ),
-                                EntryNee::PickedVertex => {
-                                    let u_pick = path.rng.uniform();
-                                    pick_skipped(verts, bsdf, budget, u_pick)
-                                }
-                            };
-                        }
-                    }
-                }
             }
         }
     }
@@ -743,14 +548,13 @@ impl Estimators {
                             mesh_radius: own.radius,
                         });
                     }
-                    let sampler = EstimatorSampler::try_new(baked).map_err(file_err)?;
+                    let mut sampler = EstimatorSampler::try_new(baked).map_err(file_err)?;
+                    sampler.throughput_bound =
+                        nppp_estimator::exit_throughput_bound(medium.is_some());
                     let model = if mode == EstimatorMode::CostFloor {
                         EstimatorModel::CostFloor { sampler }
                     } else {
-                        EstimatorModel::Neural {
-                            sampler,
-                            decoder: None,
-                        }
+                        EstimatorModel::Neural { sampler }
                     };
                     Estimator {
                         model,
@@ -821,7 +625,7 @@ impl Estimators {
         self.list
             .iter()
             .map(|e| match &e.model {
-                EstimatorModel::Neural { sampler, .. } | EstimatorModel::CostFloor { sampler } => {
+                EstimatorModel::Neural { sampler } | EstimatorModel::CostFloor { sampler } => {
                     sampler.memory_bytes()
                 }
                 EstimatorModel::Oracle { .. } => 0,

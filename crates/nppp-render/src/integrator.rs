@@ -18,7 +18,8 @@
 
 use crate::accel::SceneHit;
 use crate::bsdf::Bsdf;
-use crate::estimator::{EntryBatch, EntryNee, EstimatorStats, Meet, SkippedVertices};
+use crate::entry::EntryBatch;
+use crate::estimator::{EntryNee, EstimatorStats, Meet, SkippedVertices};
 use crate::film::PixelSum;
 use crate::medium::HeroChannel;
 use crate::path::{MediumVisit, PathState};

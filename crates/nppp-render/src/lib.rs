@@ -12,6 +12,7 @@ pub mod bsdf;
 pub mod bvh4;
 pub mod camera;
 pub mod datagen;
+pub mod entry;
 pub mod estimator;
 pub mod film;
 pub mod image_io;

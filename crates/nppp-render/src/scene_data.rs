@@ -3,8 +3,10 @@
 
 use crate::accel::{Accel, SceneHit};
 use crate::camera::PinholeCamera;
+use crate::estimator::Estimator;
 use crate::lights::{LightTriangle, Lights};
 use crate::medium::Medium;
+use crate::object_walk::ObjectTracer;
 use crate::surface::{OFFSET_REL, SurfaceKind};
 use glam::Vec3;
 use nppp_scene::Scene;
@@ -44,7 +46,7 @@ pub struct RenderScene {
     pub media: Vec<Option<Medium>>,
     /// Estimators attached to instances; `None` runs no estimator code at
     /// all. Only a scene built by [`RenderScene::for_estimators`] can use
-    /// them ([`crate::render`] checks).
+    /// them (`render::render` checks).
     pub estimators: Option<crate::estimator::Estimators>,
 }
 
@@ -172,6 +174,20 @@ impl RenderScene {
                 })
                 .collect(),
             estimators: None,
+        }
+    }
+
+    /// The real object behind estimator `est` alone, as the oracle walks it
+    /// and as first-vertex NEE finds its vertex.
+    pub fn object_tracer(&self, est: &Estimator, max_internal_bounces: u32) -> ObjectTracer<'_> {
+        ObjectTracer {
+            blas: &self.accel.blas[est.mesh],
+            surface: est.surface,
+            medium: est.medium,
+            sphere: est.sphere,
+            geo_normals: &self.geo_normals[est.mesh],
+            shading_normals: self.shading_normals[est.mesh].as_deref(),
+            max_internal_bounces,
         }
     }
 

@@ -1,0 +1,162 @@
+//! Answering a wavefront step's estimator entries in batches: one decoder
+//! call per neural estimator ([`nppp_estimator::EstimatorSampler::sample_batch`]),
+//! one object walk per oracle entry, a free exit per cost-floor entry, and
+//! the skipped vertices next-event estimation through the estimator uses.
+//! The integrator gathers the entries ([`crate::estimator::Estimators::intersect`])
+//! and continues each path from its exit.
+
+use crate::estimator::{
+    EntryNee, EstimatorEntry, EstimatorModel, EstimatorStats, Estimators, LatentLookup,
+    SkippedVertices, first_vertex_skipped, pick_skipped,
+};
+use crate::object_walk::{Walk, WalkVertex};
+use crate::path::PathState;
+use crate::scene_data::RenderScene;
+use crate::surface::SurfaceKind;
+use glam::Vec3;
+use nppp_estimator::{Exit, ExitBatch};
+
+/// Reusable buffers for answering a wavefront step's entries in batches.
+#[derive(Default)]
+pub struct EntryBatch {
+    /// (path index, entry)
+    pub entries: Vec<(usize, EstimatorEntry)>,
+    rows: Vec<usize>,
+    decode: ExitBatch,
+    pub exits: Vec<Exit>,
+    /// Per entry, parallel to `exits`: the vertices the renderer still uses.
+    pub skipped: Vec<SkippedVertices>,
+    walk_vertices: Vec<WalkVertex>,
+}
+
+impl EntryBatch {
+    /// Answers every gathered entry: one decoder call per neural estimator,
+    /// one object walk per oracle entry, each drawing from its own path's stream.
+    pub fn answer(
+        &mut self,
+        ests: &Estimators,
+        scene: &RenderScene,
+        paths: &mut [PathState],
+        max_bounces: u32,
+        stats: &mut EstimatorStats,
+    ) {
+        self.exits.clear();
+        self.exits.resize(self.entries.len(), Exit::default());
+        self.skipped.clear();
+        self.skipped
+            .resize(self.entries.len(), SkippedVertices::default());
+        stats.entries += self.entries.len() as u64;
+        for (ei, est) in ests.list.iter().enumerate() {
+            self.rows.clear();
+            self.rows.extend(
+                self.entries
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, (_, e))| ests.per_instance[e.instance as usize] == Some(ei as u32))
+                    .map(|(i, _)| i),
+            );
+            if self.rows.is_empty() {
+                continue;
+            }
+            match &est.model {
+                EstimatorModel::Neural { sampler } => {
+                    let (entries, rows) = (&self.entries, &self.rows);
+                    let lookup = ests.latent_lookup;
+                    let fill = |k: usize, z: &mut [f32], noise: &mut [f32]| {
+                        let (path, entry) = &entries[rows[k]];
+                        let rng = &mut paths[*path].rng;
+                        match lookup {
+                            LatentLookup::Interpolate => sampler.latent(&entry.pair, z),
+                            LatentLookup::Stochastic => {
+                                let u =
+                                    [rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()];
+                                sampler.latent_stochastic(&entry.pair, u, z);
+                            }
+                        }
+                        noise.iter_mut().for_each(|v| *v = rng.normal());
+                    };
+                    let decoded = sampler.sample_batch(
+                        &mut self.decode,
+                        rows.len(),
+                        fill,
+                        &mut stats.repairs,
+                    );
+                    stats.decoder_fallbacks += u64::from(decoded.fell_back);
+                    for (&i, exit) in rows.iter().zip(decoded.exits) {
+                        self.exits[i] = *exit;
+                    }
+                    let max_b = sampler.meta().max_internal_bounces;
+                    if let (EntryNee::FirstVertex, SurfaceKind::Scatter(bsdf)) =
+                        (est.entry_nee, est.surface)
+                    {
+                        let tracer = scene.object_tracer(est, max_b);
+                        for &i in &self.rows {
+                            let (path, entry) = &self.entries[i];
+                            let budget = max_bounces.saturating_sub(paths[*path].depth);
+                            let first = tracer.first_vertex(&entry.ray);
+                            self.skipped[i] =
+                                first_vertex_skipped(first, bsdf, budget, &self.exits[i]);
+                        }
+                    }
+                }
+                EstimatorModel::CostFloor { .. } => {
+                    for &i in &self.rows {
+                        let entry = &self.entries[i].1;
+                        self.exits[i] = Exit {
+                            position: entry.pair.exit(),
+                            direction: entry.ray.dir,
+                            throughput: Vec3::ZERO,
+                            radiance: Vec3::ZERO,
+                            bounces: 0,
+                        };
+                    }
+                }
+                EstimatorModel::Oracle {
+                    max_internal_bounces,
+                } => {
+                    let mut tracer = scene.object_tracer(est, *max_internal_bounces);
+                    for &i in &self.rows {
+                        let (path, entry) = &self.entries[i];
+                        let path = &mut paths[*path];
+                        let budget = max_bounces.saturating_sub(path.depth);
+                        tracer.max_internal_bounces = budget.clamp(1, *max_internal_bounces);
+                        let walk = if est.entry_nee == EntryNee::Off {
+                            tracer.walk(&entry.ray, &mut path.rng)
+                        } else {
+                            let verts = &mut self.walk_vertices;
+                            verts.clear();
+                            tracer.walk_recording(&entry.ray, &mut path.rng, |v| verts.push(v))
+                        };
+                        self.exits[i] = match walk {
+                            Walk::Exit(e) => e,
+                            // The exact mask said hit, so the walk hits too; keep the path alive straight through.
+                            Walk::Miss => Exit {
+                                position: entry.pair.exit(),
+                                direction: entry.ray.dir,
+                                throughput: Vec3::ONE,
+                                radiance: Vec3::ZERO,
+                                bounces: 0,
+                            },
+                        };
+                        if let SurfaceKind::Scatter(bsdf) = est.surface {
+                            let verts = &self.walk_vertices;
+                            self.skipped[i] = match est.entry_nee {
+                                EntryNee::Off => SkippedVertices::default(),
+                                EntryNee::FirstVertex => first_vertex_skipped(
+                                    verts.first().copied(),
+                                    bsdf,
+                                    budget,
+                                    &self.exits[i],
+                                ),
+                                EntryNee::PickedVertex => {
+                                    let u_pick = path.rng.uniform();
+                                    pick_skipped(verts, bsdf, budget, u_pick)
+                                }
+                            };
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
