@@ -83,6 +83,24 @@ impl RenderScene {
         Self::build(scene, true)
     }
 
+    /// The layout renders with estimators need, where it differs from the
+    /// one [`Self::new`] builds for plain path tracing (`None`: that one
+    /// serves both). For a caller that renders the same scene both ways and
+    /// times each on its own layout (`nppp bench`).
+    pub fn estimator_layout(scene: &Scene) -> Option<Self> {
+        Self::layouts_differ(scene).then(|| Self::for_estimators(scene))
+    }
+
+    /// Whether keeping estimator instances apart changes what is merged
+    /// into the world BLAS.
+    fn layouts_differ(scene: &Scene) -> bool {
+        let inst: Vec<(usize, nppp_scene::Transform)> =
+            scene.instances.iter().map(|i| (i.mesh, i.transform)).collect();
+        let keep: Vec<bool> = scene.instances.iter().map(|i| i.estimator.is_some()).collect();
+        Accel::merge_plan(scene.meshes.len(), &inst, &keep)
+            != Accel::merge_plan(scene.meshes.len(), &inst, &[])
+    }
+
     fn build(scene: &Scene, keep_estimator_instances: bool) -> Self {
         let inst: Vec<(usize, nppp_scene::Transform)> = scene
             .instances
@@ -96,8 +114,7 @@ impl RenderScene {
             .collect();
         // Where keeping estimator instances apart changes what is merged,
         // rays that cannot use an estimator get the merged layout too.
-        let layouts_differ = Accel::merge_plan(scene.meshes.len(), &inst, &keep)
-            != Accel::merge_plan(scene.meshes.len(), &inst, &[]);
+        let layouts_differ = keep_estimator_instances && Self::layouts_differ(scene);
         let (accel, plain_accel) = if layouts_differ {
             let (a, p) = rayon::join(
                 || Accel::build(&scene.meshes, &inst, &keep),

@@ -181,14 +181,8 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     // into the world BLAS); estimator runs get theirs.
     let mut rs = RenderScene::new(&scene);
     let build_seconds = t_build.elapsed().as_secs_f64();
-    // A second layout only where the first merged an estimator instance
-    // (a once-used mesh); otherwise both would be the same scene.
-    let mut rs_est = scene
-        .instances
-        .iter()
-        .enumerate()
-        .any(|(i, inst)| inst.estimator.is_some() && rs.accel.is_merged(i))
-        .then(|| RenderScene::for_estimators(&scene));
+    // A second layout only where estimator renders need another one.
+    let mut rs_est = RenderScene::estimator_layout(&scene);
     let triangles_unique: u64 = scene.meshes.iter().map(|m| m.triangles.len() as u64).sum();
     let triangles_instanced: u64 = scene
         .instances
