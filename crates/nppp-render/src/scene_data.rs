@@ -94,9 +94,16 @@ impl RenderScene {
     /// Whether keeping estimator instances apart changes what is merged
     /// into the world BLAS.
     fn layouts_differ(scene: &Scene) -> bool {
-        let inst: Vec<(usize, nppp_scene::Transform)> =
-            scene.instances.iter().map(|i| (i.mesh, i.transform)).collect();
-        let keep: Vec<bool> = scene.instances.iter().map(|i| i.estimator.is_some()).collect();
+        let inst: Vec<(usize, nppp_scene::Transform)> = scene
+            .instances
+            .iter()
+            .map(|i| (i.mesh, i.transform))
+            .collect();
+        let keep: Vec<bool> = scene
+            .instances
+            .iter()
+            .map(|i| i.estimator.is_some())
+            .collect();
         Accel::merge_plan(scene.meshes.len(), &inst, &keep)
             != Accel::merge_plan(scene.meshes.len(), &inst, &[])
     }

@@ -53,13 +53,11 @@ pub fn box_mesh(min: Vec3, max: Vec3) -> Mesh {
     }
 }
 
-/// The contract's icosphere. Computed in f64 and rounded once at the end so
-/// that an implementation in any language lands on the same f32 positions
-/// (up to the last bit), whatever order it does the arithmetic in.
-/// `subdivisions` must already be checked against
-/// [`MAX_ICOSPHERE_SUBDIVISIONS`]; larger values are clamped so that no
-/// input can make this allocate without bound.
-pub fn icosphere_mesh(center: Vec3, radius: f32, subdivisions: u32) -> Mesh {
+/// The contract's unit icosphere in f64, vertex order and winding as the
+/// contract gives them (the `icosphere` shape, and the procedural displaced
+/// sphere, which displaces its vertices before rounding). `subdivisions` is
+/// not clamped: callers check it.
+pub(crate) fn unit_icosphere(subdivisions: u32) -> (Vec<DVec3>, Vec<[u32; 3]>) {
     let t = (1.0 + 5f64.sqrt()) / 2.0;
     let mut verts: Vec<DVec3> = [
         (-1.0, t, 0.0),
@@ -100,7 +98,7 @@ pub fn icosphere_mesh(center: Vec3, radius: f32, subdivisions: u32) -> Mesh {
         [8, 6, 7],
         [9, 8, 1],
     ];
-    for _ in 0..subdivisions.min(MAX_ICOSPHERE_SUBDIVISIONS) {
+    for _ in 0..subdivisions {
         // Midpoints are shared between the two triangles of an edge, so the
         // sphere stays watertight; keyed by the unordered edge.
         let mut midpoints: HashMap<(u32, u32), u32> = HashMap::with_capacity(tris.len() * 3 / 2);
@@ -121,6 +119,17 @@ pub fn icosphere_mesh(center: Vec3, radius: f32, subdivisions: u32) -> Mesh {
         }
         tris = next;
     }
+    (verts, tris)
+}
+
+/// The contract's icosphere. Computed in f64 and rounded once at the end so
+/// that an implementation in any language lands on the same f32 positions
+/// (up to the last bit), whatever order it does the arithmetic in.
+/// `subdivisions` must already be checked against
+/// [`MAX_ICOSPHERE_SUBDIVISIONS`]; larger values are clamped so that no
+/// input can make this allocate without bound.
+pub fn icosphere_mesh(center: Vec3, radius: f32, subdivisions: u32) -> Mesh {
+    let (verts, tris) = unit_icosphere(subdivisions.min(MAX_ICOSPHERE_SUBDIVISIONS));
     let c = center.as_dvec3();
     let r = f64::from(radius);
     Mesh {

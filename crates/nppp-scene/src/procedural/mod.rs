@@ -297,73 +297,6 @@ fn into_unit_sphere(positions: &[DVec3]) -> Vec<Vec3> {
 // ---------------------------------------------------------------------------
 // Displaced sphere
 
-/// The scene format's icosphere, kept in f64 so deep subdivisions don't
-/// accumulate rounding in the midpoints.
-fn icosphere(subdivisions: u32) -> (Vec<DVec3>, Vec<[u32; 3]>) {
-    let t = (1.0 + 5f64.sqrt()) / 2.0;
-    let mut positions: Vec<DVec3> = [
-        [-1.0, t, 0.0],
-        [1.0, t, 0.0],
-        [-1.0, -t, 0.0],
-        [1.0, -t, 0.0],
-        [0.0, -1.0, t],
-        [0.0, 1.0, t],
-        [0.0, -1.0, -t],
-        [0.0, 1.0, -t],
-        [t, 0.0, -1.0],
-        [t, 0.0, 1.0],
-        [-t, 0.0, -1.0],
-        [-t, 0.0, 1.0],
-    ]
-    .iter()
-    .map(|&v| DVec3::from_array(v).normalize())
-    .collect();
-    let mut triangles: Vec<[u32; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..subdivisions {
-        // Each edge is shared by two triangles; the cache gives both the same
-        // midpoint vertex, which keeps the mesh welded.
-        let mut midpoints: HashMap<u64, u32> = HashMap::with_capacity(triangles.len() * 3 / 2);
-        let mut midpoint = |a: u32, b: u32, positions: &mut Vec<DVec3>| -> u32 {
-            let key = (u64::from(a.min(b)) << 32) | u64::from(a.max(b));
-            *midpoints.entry(key).or_insert_with(|| {
-                let m = ((positions[a as usize] + positions[b as usize]) * 0.5).normalize();
-                positions.push(m);
-                (positions.len() - 1) as u32
-            })
-        };
-        let mut next = Vec::with_capacity(triangles.len() * 4);
-        for &[a, b, c] in &triangles {
-            let ab = midpoint(a, b, &mut positions);
-            let bc = midpoint(b, c, &mut positions);
-            let ca = midpoint(c, a, &mut positions);
-            next.extend_from_slice(&[[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]);
-        }
-        triangles = next;
-    }
-    (positions, triangles)
-}
-
 /// SplitMix64: a tiny, well-mixed generator, so the noise depends on nothing
 /// but the seed (no external crates, no platform-dependent RNG).
 struct SplitMix64(u64);
@@ -444,7 +377,7 @@ impl FoldNoise {
 /// the origin, so it can never intersect itself and every triangle keeps its
 /// orientation, however deep the folds are.
 fn displaced_sphere(subdivisions: u32, amplitude: f64, frequency: f64, seed: u64) -> TriMesh {
-    let (mut positions, triangles) = icosphere(subdivisions);
+    let (mut positions, triangles) = crate::shapes::unit_icosphere(subdivisions);
     let noise = FoldNoise::new(frequency, seed);
     for p in &mut positions {
         *p *= 1.0 + amplitude * noise.fold(*p);
