@@ -94,31 +94,32 @@ impl RenderScene {
     /// Whether keeping estimator instances apart changes what is merged
     /// into the world BLAS.
     fn layouts_differ(scene: &Scene) -> bool {
-        let inst: Vec<(usize, nppp_scene::Transform)> = scene
-            .instances
-            .iter()
-            .map(|i| (i.mesh, i.transform))
-            .collect();
-        let keep: Vec<bool> = scene
-            .instances
-            .iter()
-            .map(|i| i.estimator.is_some())
-            .collect();
+        let (inst, keep) = Self::instance_plan(scene, true);
         Accel::merge_plan(scene.meshes.len(), &inst, &keep)
             != Accel::merge_plan(scene.meshes.len(), &inst, &[])
     }
 
-    fn build(scene: &Scene, keep_estimator_instances: bool) -> Self {
-        let inst: Vec<(usize, nppp_scene::Transform)> = scene
+    /// Per instance: its (mesh, transform), and whether it keeps its own
+    /// BLAS under the TLAS.
+    fn instance_plan(
+        scene: &Scene,
+        keep_estimator_instances: bool,
+    ) -> (Vec<(usize, nppp_scene::Transform)>, Vec<bool>) {
+        let inst = scene
             .instances
             .iter()
             .map(|i| (i.mesh, i.transform))
             .collect();
-        let keep: Vec<bool> = scene
+        let keep = scene
             .instances
             .iter()
             .map(|i| keep_estimator_instances && i.estimator.is_some())
             .collect();
+        (inst, keep)
+    }
+
+    fn build(scene: &Scene, keep_estimator_instances: bool) -> Self {
+        let (inst, keep) = Self::instance_plan(scene, keep_estimator_instances);
         // Where keeping estimator instances apart changes what is merged,
         // rays that cannot use an estimator get the merged layout too.
         let layouts_differ = keep_estimator_instances && Self::layouts_differ(scene);
