@@ -1,7 +1,9 @@
 //! The neural estimator in Burn: encoder, decoder and mask network, their
 //! training (Chamfer + energy distance + mask BCE, Adam), the model
-//! directory with its checksummed checkpoints (`model_dir`), and baking to
-//! `.nppp`.
+//! directory with its checksummed checkpoints (`model_dir`), baking to
+//! `.nppp`, and the decoder as a Burn backend of the estimator interface
+//! (`decoder::BurnDecoder`, an `nppp_estimator::ExitDecoder` that
+//! `nppp render --decoder burn-*` attaches).
 //!
 //! The renderer never links this crate's training stack: it reads the baked
 //! file through `nppp-estimator`. This crate is what `nppp train` and
