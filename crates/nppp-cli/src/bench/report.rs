@@ -6,7 +6,9 @@
 //! interpolation and speed-ups come from `analysis`, the report takes
 //! ratios of them and prints.
 
-use super::analysis::{FLIP_NOTE, Speedup, baseline_index, cells, interp_loglog, speedup_at_error};
+use super::analysis::{
+    Cell, FLIP_NOTE, Speedup, baseline_index, cells, interp_loglog, speedup_at_error,
+};
 use super::harness::{Measurement, SceneResult};
 use super::machine::{Machine, peak_rss_mib};
 use super::plan::{Config, Kind, Plan};
@@ -266,94 +268,62 @@ fn scene_markdown(s: &mut String, plan: &Plan, r: &SceneResult) {
         .filter(|(i, _)| *i != bi)
         .collect();
 
-    // Equal spp.
-    let _ = writeln!(
-        s,
-        "### Equal spp: time and relMSE as a multiple of PT M={}'s\n",
-        r.max_bounces
+    // One row per configuration, one column per PT cell of the ladder.
+    let others: Vec<(&Config, Vec<Cell>)> = others
+        .iter()
+        .map(|(ci, c)| (*c, cells(r, *ci, &plan.ladder)))
+        .collect();
+    let mut table = |title: String,
+                     column: &dyn Fn(&Cell) -> String,
+                     entry: &dyn Fn(&[Cell], &Cell) -> String| {
+        let _ = writeln!(s, "{title}\n");
+        let header: Vec<String> = base.iter().map(column).collect();
+        let _ = writeln!(s, "| config | {} |", header.join(" | "));
+        let _ = writeln!(s, "|---|{}", "---|".repeat(base.len()));
+        for (c, cc) in &others {
+            let cols: Vec<String> = base.iter().map(|b| entry(cc, b)).collect();
+            let _ = writeln!(s, "| {} | {} |", c.label(), cols.join(" | "));
+        }
+        let _ = writeln!(s);
+    };
+    table(
+        format!(
+            "### Equal spp: time and relMSE as a multiple of PT M={}'s",
+            r.max_bounces
+        ),
+        &|b| format!("{} spp", b.spp),
+        &|cc, b| match cc.iter().find(|x| x.spp == b.spp) {
+            Some(x) => format!(
+                "time x{:.2}, relMSE x{:.2}",
+                x.seconds / b.seconds.max(1e-9),
+                x.rel_mse / b.rel_mse.max(1e-300)
+            ),
+            None => "-".into(),
+        },
     );
-    let _ = writeln!(
-        s,
-        "| config | {} |",
-        base.iter()
-            .map(|b| format!("{} spp", b.spp))
-            .collect::<Vec<_>>()
-            .join(" | ")
-    );
-    let _ = writeln!(s, "|---|{}", "---|".repeat(base.len()));
-    for (ci, c) in &others {
-        let cc = cells(r, *ci, &plan.ladder);
-        let cols: Vec<String> = base
-            .iter()
-            .map(|b| match cc.iter().find(|x| x.spp == b.spp) {
-                Some(x) => format!(
-                    "time x{:.2}, relMSE x{:.2}",
-                    x.seconds / b.seconds.max(1e-9),
-                    x.rel_mse / b.rel_mse.max(1e-300)
-                ),
-                None => "-".into(),
-            })
-            .collect();
-        let _ = writeln!(s, "| {} | {} |", c.label(), cols.join(" | "));
-    }
-    let _ = writeln!(s);
-
-    // Equal time.
-    let _ = writeln!(
-        s,
-        "### Equal time: relMSE as a multiple of PT M={}'s, at PT's render times (interpolated; `-` outside the configuration's measured times)\n",
-        r.max_bounces
-    );
-    let _ = writeln!(
-        s,
-        "| config | {} |",
-        base.iter()
-            .map(|b| format!("{:.3} s (PT {} spp)", b.seconds, b.spp))
-            .collect::<Vec<_>>()
-            .join(" | ")
-    );
-    let _ = writeln!(s, "|---|{}", "---|".repeat(base.len()));
-    for (ci, c) in &others {
-        let mut pts: Vec<(f64, f64)> = cells(r, *ci, &plan.ladder)
-            .iter()
-            .map(|x| (x.seconds, x.rel_mse))
-            .collect();
-        pts.sort_by(|p, q| p.0.total_cmp(&q.0));
-        let cols: Vec<String> = base
-            .iter()
-            .map(|b| match interp_loglog(&pts, b.seconds) {
+    table(
+        format!(
+            "### Equal time: relMSE as a multiple of PT M={}'s, at PT's render times (interpolated; `-` outside the configuration's measured times)",
+            r.max_bounces
+        ),
+        &|b| format!("{:.3} s (PT {} spp)", b.seconds, b.spp),
+        &|cc, b| {
+            let mut pts: Vec<(f64, f64)> = cc.iter().map(|x| (x.seconds, x.rel_mse)).collect();
+            pts.sort_by(|p, q| p.0.total_cmp(&q.0));
+            match interp_loglog(&pts, b.seconds) {
                 Some(e) => format!("x{:.2}", e / b.rel_mse.max(1e-300)),
                 None => "-".into(),
-            })
-            .collect();
-        let _ = writeln!(s, "| {} | {} |", c.label(), cols.join(" | "));
-    }
-    let _ = writeln!(s);
-
-    // Equal error.
-    let _ = writeln!(
-        s,
-        "### Equal error: speed-up against PT M={} (PT's time / the configuration's time for PT's relMSE)\n",
-        r.max_bounces
+            }
+        },
     );
-    let _ = writeln!(
-        s,
-        "| config | {} |",
-        base.iter()
-            .map(|b| format!("relMSE {} (PT {} spp)", sci(b.rel_mse), b.spp))
-            .collect::<Vec<_>>()
-            .join(" | ")
+    table(
+        format!(
+            "### Equal error: speed-up against PT M={} (PT's time / the configuration's time for PT's relMSE)",
+            r.max_bounces
+        ),
+        &|b| format!("relMSE {} (PT {} spp)", sci(b.rel_mse), b.spp),
+        &|cc, b| speedup_at_error(cc, b.rel_mse, b.seconds).show(),
     );
-    let _ = writeln!(s, "|---|{}", "---|".repeat(base.len()));
-    for (ci, c) in &others {
-        let cc = cells(r, *ci, &plan.ladder);
-        let cols: Vec<String> = base
-            .iter()
-            .map(|b| speedup_at_error(&cc, b.rel_mse, b.seconds).show())
-            .collect();
-        let _ = writeln!(s, "| {} | {} |", c.label(), cols.join(" | "));
-    }
-    let _ = writeln!(s);
 
     // Speed-up as a function of P.
     let nppp: Vec<(usize, &Config)> = r
