@@ -130,6 +130,19 @@ impl TrainingLog {
     }
 }
 
+/// The smallest and largest x and y of `points`: (x0, x1, y0, y1), with
+/// x0 > x1 when there are none.
+pub(crate) fn bounds<'a>(points: impl Iterator<Item = &'a (f64, f64)>) -> (f64, f64, f64, f64) {
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for &(x, y) in points {
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    }
+    (x0, x1, y0, y1)
+}
+
 type Series = (&'static str, Vec<(f64, f64)>, plotters::style::RGBColor);
 
 /// One panel: several series against the step, log-scaled y where all
@@ -145,14 +158,7 @@ where
 {
     use plotters::prelude::*;
     let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plotting: {e}");
-    let pts = series.iter().flat_map(|s| s.1.iter());
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for &(x, y) in pts {
-        x0 = x0.min(x);
-        x1 = x1.max(x);
-        y0 = y0.min(y);
-        y1 = y1.max(y);
-    }
+    let (x0, x1, y0, y1) = bounds(series.iter().flat_map(|s| s.1.iter()));
     if x0 > x1 {
         area.titled(&format!("{title}: no rows yet"), ("sans-serif", 18))
             .map_err(|e| err(&e))?;

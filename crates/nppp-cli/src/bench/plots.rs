@@ -192,14 +192,7 @@ where
     use plotters::prelude::*;
     let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plotting: {e}");
     root.fill(&WHITE).map_err(|e| err(&e))?;
-    let all = curves.iter().flat_map(|c| c.points.iter());
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for &(x, y) in all {
-        x0 = x0.min(x);
-        x1 = x1.max(x);
-        y0 = y0.min(y);
-        y1 = y1.max(y);
-    }
+    let (x0, x1, y0, y1) = crate::plot::bounds(curves.iter().flat_map(|c| c.points.iter()));
     if x0 > x1 {
         bail!("nothing to plot");
     }
