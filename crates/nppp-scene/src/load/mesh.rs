@@ -169,14 +169,8 @@ impl Cx<'_> {
     }
 
     fn procedural(&self, v: &Json, path: &str) -> Res<Mesh> {
-        let Json::Obj(entries) = v else {
-            return Err(self.wrong_type(path, "an object", v));
-        };
+        let (entries, ty) = self.typed_object(v, path)?;
         let type_path = join_key(path, "type");
-        let ty = match entries.iter().find(|(k, _)| k == "type") {
-            Some((_, t)) => self.string(t, &type_path)?,
-            None => return Err(self.invalid(&type_path, "required key is missing".into())),
-        };
         // Missing parameters take the values of the project's standard
         // object of that kind, so `{"type": "torus_knot"}` is the usual knot.
         let Some(standard) = Procedural::defaults()

@@ -177,6 +177,20 @@ impl Cx<'_> {
         })
     }
 
+    /// An object whose required `type` key decides which other keys it may
+    /// have: its entries and its type.
+    fn typed_object<'j>(&self, v: &'j Json, path: &str) -> Res<(&'j [(String, Json)], &'j str)> {
+        let Json::Obj(entries) = v else {
+            return Err(self.wrong_type(path, "an object", v));
+        };
+        let type_path = join_key(path, "type");
+        let ty = match entries.iter().find(|(k, _)| k == "type") {
+            Some((_, t)) => self.string(t, &type_path)?,
+            None => return Err(self.invalid(&type_path, "required key is missing".into())),
+        };
+        Ok((entries, ty))
+    }
+
     fn string<'j>(&self, v: &'j Json, path: &str) -> Res<&'j str> {
         match v {
             Json::Str(s) => Ok(s),
@@ -523,14 +537,8 @@ impl Cx<'_> {
 
     fn material(&self, v: &Json, path: &str) -> Res<Material> {
         // The type decides which keys are allowed, so read it first.
-        let Json::Obj(entries) = v else {
-            return Err(self.wrong_type(path, "an object", v));
-        };
+        let (_, ty) = self.typed_object(v, path)?;
         let type_path = join_key(path, "type");
-        let ty = match entries.iter().find(|(k, _)| k == "type") {
-            Some((_, t)) => self.string(t, &type_path)?,
-            None => return Err(self.invalid(&type_path, "required key is missing".into())),
-        };
         let allowed: &[&str] = match ty {
             "diffuse" => &["type", "albedo"],
             "conductor" => &["type", "reflectance", "roughness"],
