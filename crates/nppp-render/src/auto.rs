@@ -11,22 +11,26 @@
 //!   `(a - b)^2 / 4`, relative to the normalizing render as relMSE is to its
 //!   reference (`/ (r^2 + 0.01)`, `r` blurred over 5 x 5 pixels), averaged
 //!   over pixels and channels;
-//! - the cost per sample: the work the render counted (BVH node visits,
-//!   closest-hit rays, estimator entries) weighted by what each costs
-//!   ([`COST_PER_RAY`], [`COST_PER_ENTRY`]). Counted work, not the wall
-//!   clock: the decision, and so the image, is the same at any thread
-//!   count and on a busy machine;
+//! - the cost per sample: the work the render counted (BVH node visits, the
+//!   camera rays' apart, shadow rays, estimator entries) weighted by what
+//!   each costs ([`work_cost`]). Counted work, not the wall clock: the
+//!   decision, and so the image, is the same at any thread count and on a
+//!   busy machine;
 //! - its image mean against PT's: a configuration whose mean differs by more
 //!   than noise and [`PilotOptions::bias_tolerance`] is rejected (a network
 //!   that misses light has little variance and would look efficient).
 //!
-//! Efficiency is 1 / (cost x error). An estimator is used with its most
-//! efficient P only if that beats PT's efficiency by
-//! [`PilotOptions::margin`]: the pilot's estimates are noisy (heavy-tailed
-//! per-pixel variance at 4 spp) and the cost model is within about 10% of
-//! measured times, so a configuration that merely matches PT stays off.
+//! Efficiency is 1 / (cost x error), with the error's ratio to PT's shrunk
+//! towards 1 as far as the pilot cannot measure it ([`efficiency`]): the
+//! per-pixel variance at 4 spp is heavy-tailed, and one configuration
+//! catching a firefly that another missed moved the raw ratio 10x-100x
+//! between seeds. An estimator is used only if its best configuration
+//! beats PT's efficiency by [`PilotOptions::margin`] (the cost model is
+//! within about 10% of measured times), and among its configurations within
+//! [`PilotOptions::tie`] of the best the cheapest wins ([`choose`]).
 //! Candidates are decided one estimator at a time, not by trying every
-//! combination. The pilot is about 3-5% of a 64-spp render.
+//! combination. The pilot is about 3-5% of a 64-spp render where PT is
+//! the cost, up to about 15% where an estimator is many times cheaper.
 
 use crate::estimator::{EntryNee, Estimators};
 use crate::image_io::Image;
@@ -34,21 +38,37 @@ use crate::integrator::WorkCounts;
 use crate::render::{RenderOptions, render};
 use crate::scene_data::RenderScene;
 use crate::surface::SurfaceKind;
+use nppp_geom::rng::mix64;
 
-/// Cost of one closest-hit ray beyond its node visits (shading, sampling,
-/// the wavefront's bookkeeping), in node visits. Fitted with the entry cost
-/// by least squares to render times of 18 renders (PT and NPPP, P = 0..2,
-/// with and without entry NEE) of every scene in data/scenes on the 2-core
-/// machine (BENCHMARKS.md, "auto"): 14.2 ns per node visit, 54 ns per ray,
-/// 358 ns per entry (two threads); predicted times within 0.89x-1.22x.
-pub const COST_PER_RAY: f64 = 3.8;
-/// Cost of one estimator entry (latent lookup, its row of the batched
-/// decoder, decoding the exit), in node visits.
-pub const COST_PER_ENTRY: f64 = 25.0;
+/// The cost model, in units of one BVH node visit of a path's later rays
+/// (incoherent: most of them miss the cache). Fitted by
+/// `tools/fit_cost_model.py` (least squares on relative error) to 86 timed
+/// renders of every scene in data/scenes (PT and NPPP at P = 0..2, with and
+/// without first-vertex NEE, 2 rounds, 24 spp) on the 2-core machine
+/// (BENCHMARKS.md, "auto"): 24.4 ns per later node visit, 3.8 ns per camera
+/// ray's node visit, 49 ns per shadow ray beyond its visits, 909 ns per
+/// entry (two threads); time ratios to PT predicted with an RMS error of
+/// 8%. Closest-hit rays have no weight of their own: they track node visits
+/// too closely for the fit to tell them apart (their weight came out
+/// negative).
+///
+/// A camera ray's node visit: camera rays of a tile are coherent and find
+/// their nodes in cache.
+pub const COST_PER_CAMERA_NODE_VISIT: f64 = 0.16;
+/// A shadow ray beyond its node visits (the light sample, the BSDF
+/// evaluation, the MIS weights).
+pub const COST_PER_SHADOW_RAY: f64 = 2.0;
+/// One estimator entry (the mask and latent lookups, its row of the batched
+/// decoder, decoding the exit).
+pub const COST_PER_ENTRY: f64 = 37.0;
 
-/// Counted work of a render, in node-visit equivalents.
+/// Counted work of a render, in later-node-visit equivalents.
 pub fn work_cost(work: &WorkCounts, entries: u64) -> f64 {
-    work.node_visits as f64 + COST_PER_RAY * work.rays as f64 + COST_PER_ENTRY * entries as f64
+    let camera = work.camera_node_visits.min(work.node_visits);
+    (work.node_visits - camera) as f64
+        + COST_PER_CAMERA_NODE_VISIT * camera as f64
+        + COST_PER_SHADOW_RAY * work.shadow_rays as f64
+        + COST_PER_ENTRY * entries as f64
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -59,7 +79,9 @@ pub struct PilotOptions {
     pub spp: u32,
     pub max_bounces: u32,
     pub seed: u64,
-    /// Efficiency over PT's a configuration needs to be chosen.
+    /// Efficiency over PT's a configuration needs to be chosen. 1.10: at
+    /// 1.05 one seed in eight turned cornell-gold's estimator on (its PT
+    /// pilot caught a firefly), where it loses (0.69x at equal error).
     pub margin: f64,
     /// Smallest P tried. 1 by default: at P = 0 what the camera sees of the
     /// object is the network's statistical answer (glass seen directly is
@@ -79,6 +101,17 @@ pub struct PilotOptions {
     /// a network that misses light (the tube at P = 0 renders its inside
     /// black) has little variance and would otherwise look efficient.
     pub bias_tolerance: f64,
+    /// Prior standard deviation of the log of a configuration's variance
+    /// over PT's; see [`efficiency`]. 0.35 (ratios of 0.7x to 1.4x are
+    /// typical a priori): chosen over 8 seeds of every scene in data/scenes
+    /// and data/scenes/variants, where it made cornell-jade's decision
+    /// (P = 0) at every seed and turned no losing estimator on; at 0.5
+    /// cornell-gold's turned on at one seed, at 1 jade's was off or P = 1
+    /// at two (BENCHMARKS.md, "auto").
+    pub variance_ratio_prior: f64,
+    /// Efficiencies within this factor of each other are a tie, which the
+    /// cheaper configuration wins (see [`choose`]).
+    pub tie: f64,
 }
 
 impl Default for PilotOptions {
@@ -88,11 +121,13 @@ impl Default for PilotOptions {
             spp: 4,
             max_bounces: 5,
             seed: 0,
-            margin: 1.15,
+            margin: 1.10,
             min_p: 1,
             min_p_medium: 0,
             max_p: 2,
             bias_tolerance: 0.03,
+            variance_ratio_prior: 0.35,
+            tie: 1.15,
         }
     }
 }
@@ -111,6 +146,8 @@ pub struct Trial {
     pub choice: Option<Choice>,
     /// Relative variance per sample (relMSE units x spp).
     pub rel_var: f64,
+    /// Standard error of `rel_var`, from its spread over pixels.
+    pub rel_var_se: f64,
     /// Work per sample, node-visit equivalents.
     pub cost: f64,
     /// Efficiency as a multiple of PT's (0 when rejected as biased).
@@ -254,11 +291,9 @@ pub fn decide(
         samples += st.samples;
         (img, work_cost(&st.work, st.estimators.entries), st.samples)
     };
-    let seeds = [
-        opts.seed ^ 0xA070_0000_0000_0001,
-        opts.seed ^ 0xA070_0000_0000_0002,
-        opts.seed ^ 0xA070_0000_0000_0003,
-    ];
+    // Hashed, so that the pilots of different render seeds share no
+    // stream (XOR with small constants mapped seed 0's pilots onto seed 3's).
+    let seeds = [1u64, 2, 3].map(|k| mix64(mix64(opts.seed) ^ (0xA070_0000_0000_0000 | k)));
 
     // Plain path tracing: the baseline and the error's normalization.
     let base_instances = ests.per_instance.clone();
@@ -298,9 +333,11 @@ pub fn decide(
 
     let trial = |choice: Option<Choice>, a: &Image, b: &Image, cost: f64| {
         let (mean, mean_var) = mean_and_variance(a, b);
+        let (rel_var, rel_var_se) = rel_var(a, b, &norm);
         Trial {
             choice,
-            rel_var: rel_var(a, b, &norm),
+            rel_var,
+            rel_var_se,
             cost,
             efficiency: 1.0,
             mean,
@@ -309,7 +346,6 @@ pub fn decide(
         }
     };
     let pt = trial(None, &pilots[0].1, &pilots[0].2, pilots[0].3);
-    let pt_product = pt.rel_var * pt.cost;
     let mut decisions = Vec::new();
     for index in 0..ests.list.len() {
         let mut trials: Vec<Trial> = pilots
@@ -322,20 +358,13 @@ pub fn decide(
         for t in trials.iter_mut() {
             let noise = 4.0 * (t.mean_var + pt.mean_var).sqrt();
             t.biased = (t.mean - pt.mean).abs() > noise + opts.bias_tolerance * pt.mean.abs();
-            let product = t.rel_var * t.cost;
-            t.efficiency = if product > 0.0 && !t.biased {
-                pt_product / product
-            } else {
+            t.efficiency = if t.biased {
                 0.0
+            } else {
+                efficiency(&pt, t, opts.variance_ratio_prior)
             };
         }
-        let best = trials
-            .iter()
-            .filter(|t| t.efficiency.is_finite())
-            .max_by(|a, b| a.efficiency.total_cmp(&b.efficiency));
-        let choice = best
-            .filter(|t| t.efficiency >= opts.margin)
-            .and_then(|t| t.choice);
+        let choice = choose(&trials, opts);
         decisions.push(EstimatorDecision {
             index,
             choice,
@@ -355,6 +384,32 @@ pub fn decide(
         height,
     };
     (ests.any_in_use().then_some(ests), decision)
+}
+
+/// The configuration to use among one estimator's trials, `None` for off:
+/// the cheapest of those whose efficiency is within
+/// [`PilotOptions::tie`] of the best, if the best beats PT's by
+/// [`PilotOptions::margin`].
+///
+/// Between configurations of one estimator the cost per sample is what the
+/// pilot knows exactly and the variance what it knows least: efficiencies
+/// within the pilot's noise of each other are a tie, and the tie goes to the
+/// configuration that does less work (on cornell-glass P = 1 over P = 2, on
+/// cornell-jade P = 0 over P = 1).
+fn choose(trials: &[Trial], opts: &PilotOptions) -> Option<Choice> {
+    let best = trials
+        .iter()
+        .filter(|t| t.efficiency.is_finite())
+        .max_by(|a, b| a.efficiency.total_cmp(&b.efficiency))?;
+    if best.efficiency < opts.margin {
+        return None;
+    }
+    trials
+        .iter()
+        .filter(|t| t.efficiency.is_finite() && t.efficiency * opts.tie >= best.efficiency)
+        .filter(|t| t.efficiency >= opts.margin)
+        .min_by(|a, b| a.cost.total_cmp(&b.cost))
+        .and_then(|t| t.choice)
 }
 
 /// Box blur of a row-major image `width` pixels wide over (2r + 1)^2 pixels
@@ -401,21 +456,170 @@ fn mean_and_variance(a: &Image, b: &Image) -> (f64, f64) {
 }
 
 /// Variance of the two halves' mean per pixel, relative to `norm` as relMSE
-/// is to its reference, averaged over pixels and channels. Non-finite
-/// pixels count as infinite error.
-fn rel_var(a: &Image, b: &Image, norm: &[[f32; 3]]) -> f64 {
-    let mut sum = 0.0f64;
+/// is to its reference, averaged over pixels and channels, and the standard
+/// error of that average (from its spread over pixels, the unit of
+/// independent samples). Non-finite pixels count as infinite error.
+fn rel_var(a: &Image, b: &Image, norm: &[[f32; 3]]) -> (f64, f64) {
+    let (mut sum, mut sum_sq) = (0.0f64, 0.0f64);
     let mut n = 0usize;
     for ((x, y), r) in a.pixels.iter().zip(&b.pixels).zip(norm) {
+        let mut pixel = 0.0f64;
         for c in 0..3 {
             let d = (x[c] - y[c]) as f64;
             let r = r[c] as f64;
-            sum += 0.25 * d * d / (r * r + 0.01);
-            n += 1;
+            pixel += 0.25 * d * d / (r * r + 0.01) / 3.0;
+        }
+        sum += pixel;
+        sum_sq += pixel * pixel;
+        n += 1;
+    }
+    if n == 0 || !sum_sq.is_finite() {
+        return (f64::INFINITY, f64::INFINITY);
+    }
+    let n = n as f64;
+    let mean = sum / n;
+    let var = (sum_sq / n - mean * mean).max(0.0) * n / (n - 1.0).max(1.0);
+    (mean, (var / n).sqrt())
+}
+
+/// Efficiency of trial `t` as a multiple of PT's: PT's cost over its own
+/// times its variance ratio to PT's, the latter shrunk towards 1 as far as
+/// the pilot cannot measure it.
+///
+/// The cost per sample is counted, so it is exact for the pilot's paths;
+/// the variance is not. A pilot of a few thousand samples per pixel block
+/// sees a configuration's rare bright paths (caustics through glass, a long
+/// walk in a dense medium) a handful of times or not at all, so one
+/// configuration catching one firefly that another missed moved the
+/// measured ratio by 10x-100x between seeds (BENCHMARKS.md, "auto").
+/// Treating the log variance ratio `r` as normally distributed around the
+/// truth with the delta-method variance `s2 = (se_t / v_t)^2 + (se_pt /
+/// v_pt)^2` (each standard error from the spread over pixels, so a single
+/// firefly makes it as large as the value), and the truth as drawn from a
+/// prior `N(0, tau^2)`, the posterior mean is `r tau^2 / (tau^2 + s2)`: a
+/// ratio measured from many similar pixels is kept, one made by a few
+/// pixels is pulled towards 1, where the exactly counted cost decides.
+pub fn efficiency(pt: &Trial, t: &Trial, tau: f64) -> f64 {
+    if !(t.cost > 0.0 && pt.cost > 0.0) || !(t.rel_var.is_finite() && pt.rel_var.is_finite()) {
+        return if t.rel_var.is_finite() { 1.0 } else { 0.0 };
+    }
+    let cost_ratio = pt.cost / t.cost;
+    if !(t.rel_var > 0.0 && pt.rel_var > 0.0) {
+        // A black image on either side: no variance to compare.
+        return cost_ratio.min(1.0);
+    }
+    let r = (t.rel_var / pt.rel_var).ln();
+    let s2 = (t.rel_var_se / t.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2);
+    let tau2 = tau * tau;
+    let shrunk = if tau2 + s2 > 0.0 {
+        r * tau2 / (tau2 + s2)
+    } else {
+        0.0
+    };
+    cost_ratio * (-shrunk).exp()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn trial(rel_var: f64, rel_var_se: f64, cost: f64, min_bounces: Option<u32>) -> Trial {
+        Trial {
+            choice: min_bounces.map(|p| Choice {
+                min_bounces: p,
+                entry_nee: EntryNee::Off,
+            }),
+            rel_var,
+            rel_var_se,
+            cost,
+            efficiency: 0.0,
+            mean: 0.5,
+            mean_var: 0.0,
+            biased: false,
         }
     }
-    if n == 0 || !sum.is_finite() {
-        return f64::INFINITY;
+
+    #[test]
+    fn a_precisely_measured_variance_ratio_is_kept() {
+        let pt = trial(2.0, 0.0, 40.0, None);
+        let t = trial(1.0, 0.0, 20.0, Some(1));
+        // Cost ratio 2, variance ratio 0.5: 4x PT's efficiency.
+        assert!((efficiency(&pt, &t, 0.35) - 4.0).abs() < 1e-12);
+        // A vague prior keeps even a noisy ratio (the raw estimate).
+        let noisy = trial(1.0, 1.0, 20.0, Some(1));
+        assert!((efficiency(&pt, &noisy, 1e9) - 4.0).abs() < 1e-6);
     }
-    sum / n as f64
+
+    #[test]
+    fn a_ratio_made_by_one_firefly_falls_back_to_the_cost_ratio() {
+        // The configuration's variance is one pixel's (its standard error
+        // as large as the value) and 100x PT's: believed hardly at all.
+        let pt = trial(0.1, 0.01, 170.0, None);
+        let t = trial(10.0, 10.0, 42.0, Some(0));
+        let e = efficiency(&pt, &t, 0.35);
+        let cost_ratio = 170.0 / 42.0;
+        assert!(e > 0.5 * cost_ratio && e < cost_ratio, "{e}");
+        assert!(e > 50.0 * efficiency(&pt, &t, 1e9), "{e}");
+    }
+
+    #[test]
+    fn unusable_measurements_never_choose_an_estimator() {
+        let pt = trial(1.0, 0.1, 40.0, None);
+        for t in [
+            trial(f64::INFINITY, f64::INFINITY, 20.0, Some(1)),
+            trial(f64::NAN, 0.0, 20.0, Some(1)),
+            trial(0.0, 0.0, 20.0, Some(1)),
+            trial(1.0, 0.1, 0.0, Some(1)),
+        ] {
+            let e = efficiency(&pt, &t, 0.35);
+            assert!(e <= 1.0, "{t:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn ties_go_to_the_cheaper_configuration_and_losers_stay_off() {
+        let opts = PilotOptions::default();
+        let with = |eff: f64, cost: f64, p: u32| Trial {
+            efficiency: eff,
+            ..trial(1.0, 0.1, cost, Some(p))
+        };
+        // P = 2 measured 10% more efficient, but P = 1 does less work.
+        let c = choose(&[with(1.3, 30.0, 1), with(1.43, 32.0, 2)], &opts);
+        assert_eq!(c.map(|c| c.min_bounces), Some(1));
+        // Beyond the tie the more efficient one wins.
+        let c = choose(&[with(1.2, 30.0, 1), with(2.0, 32.0, 2)], &opts);
+        assert_eq!(c.map(|c| c.min_bounces), Some(2));
+        // A cheap configuration below the margin is not chosen by the tie.
+        let c = choose(&[with(1.05, 20.0, 0), with(1.15, 32.0, 2)], &opts);
+        assert_eq!(c.map(|c| c.min_bounces), Some(2));
+        // Nothing beats PT by the margin: off.
+        assert_eq!(
+            choose(&[with(1.05, 30.0, 1), with(0.0, 10.0, 0)], &opts),
+            None
+        );
+        assert_eq!(choose(&[], &opts), None);
+    }
+
+    proptest! {
+        /// Shrinkage only ever moves the efficiency from its raw value
+        /// towards the cost ratio, and more uncertainty moves it further.
+        #[test]
+        fn efficiency_lies_between_the_cost_ratio_and_the_raw_estimate(
+            v_pt in 1e-3f64..10.0, v_t in 1e-3f64..10.0,
+            rel_se_pt in 0.0f64..2.0, rel_se_t in 0.0f64..2.0, more in 0.0f64..2.0,
+            c_pt in 1.0f64..200.0, c_t in 1.0f64..200.0, tau in 0.05f64..3.0,
+        ) {
+            let pt = trial(v_pt, rel_se_pt * v_pt, c_pt, None);
+            let t = trial(v_t, rel_se_t * v_t, c_t, Some(1));
+            let e = efficiency(&pt, &t, tau);
+            let cost_ratio = c_pt / c_t;
+            let raw = cost_ratio * v_pt / v_t;
+            let (lo, hi) = (cost_ratio.min(raw), cost_ratio.max(raw));
+            prop_assert!(e >= lo * (1.0 - 1e-9) && e <= hi * (1.0 + 1e-9), "{e} not in [{lo}, {hi}]");
+            let vaguer = trial(v_t, (rel_se_t + more) * v_t, c_t, Some(1));
+            let e2 = efficiency(&pt, &vaguer, tau);
+            prop_assert!((e2 / cost_ratio).ln().abs() <= (e / cost_ratio).ln().abs() + 1e-9);
+        }
+    }
 }

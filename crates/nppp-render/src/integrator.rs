@@ -56,6 +56,11 @@ pub struct WorkCounts {
     /// BVH nodes and leaves visited by all traversals (closest hits, shadow
     /// rays, estimator queries, oracle walks).
     pub node_visits: u64,
+    /// The part of `node_visits` spent on the camera rays' closest hits:
+    /// coherent rays whose nodes are in cache, several times cheaper per
+    /// visit than a deep path's (the `auto` pilot's cost model weighs them
+    /// apart).
+    pub camera_node_visits: u64,
 }
 
 impl WorkCounts {
@@ -63,6 +68,7 @@ impl WorkCounts {
         self.rays += o.rays;
         self.shadow_rays += o.shadow_rays;
         self.node_visits += o.node_visits;
+        self.camera_node_visits += o.camera_node_visits;
     }
 }
 
@@ -96,8 +102,13 @@ impl Wavefront {
         // Everything below runs on this thread: the visits counted here are
         // this batch's own.
         let visits_before = crate::bvh4::node_visits();
+        let mut camera_step = true;
         while !self.paths.is_empty() {
             self.intersect(scene, settings);
+            if camera_step {
+                self.work.camera_node_visits += crate::bvh4::node_visits() - visits_before;
+                camera_step = false;
+            }
             self.answer_estimators(scene, settings);
             let mut w = 0;
             for r in 0..self.paths.len() {
