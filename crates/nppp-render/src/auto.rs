@@ -43,14 +43,17 @@ use nppp_geom::rng::mix64;
 /// The cost model, in units of one BVH node visit of a path's later rays
 /// (incoherent: most of them miss the cache). Fitted by
 /// `tools/fit_cost_model.py` (least squares on relative error) to 86 timed
-/// renders of every scene in data/scenes (PT and NPPP at P = 0..2, with and
+/// renders of the seven benchmark scenes (PT and NPPP at P = 0..2, with and
 /// without first-vertex NEE, 2 rounds, 24 spp) on the 2-core machine
 /// (BENCHMARKS.md, "auto"): 24.4 ns per later node visit, 3.8 ns per camera
 /// ray's node visit, 49 ns per shadow ray beyond its visits, 909 ns per
 /// entry (two threads); time ratios to PT predicted with an RMS error of
-/// 8%. Closest-hit rays have no weight of their own: they track node visits
-/// too closely for the fit to tell them apart (their weight came out
-/// negative).
+/// 8% (largest 17%). The largest misses under-rate skipping where PT's
+/// skipped bounces are dear (cornell-glass P = 1: 0.97x PT's time
+/// predicted, 0.86x measured; cornell-gold P = 0 without NEE: 1.05x
+/// against 0.90x), so auto errs towards PT there. Closest-hit rays have no
+/// weight of their own: they track node visits too closely for the fit to
+/// tell them apart (their weight came out negative).
 ///
 /// A camera ray's node visit: camera rays of a tile are coherent and find
 /// their nodes in cache.
