@@ -526,7 +526,7 @@ fn rel_var(a: &Image, b: &Image, norm: &[[f32; 3]]) -> (f64, f64) {
 /// ratio measured from many similar pixels is kept, one made by a few
 /// pixels is pulled towards 1, where the exactly counted cost decides.
 pub fn efficiency(pt: &Trial, t: &Trial, tau: f64) -> f64 {
-    if !(t.cost > 0.0 && pt.cost > 0.0) || !(t.rel_var.is_finite() && pt.rel_var.is_finite()) {
+    if !(t.cost > 0.0 && pt.cost > 0.0 && t.rel_var.is_finite() && pt.rel_var.is_finite()) {
         return if t.rel_var.is_finite() { 1.0 } else { 0.0 };
     }
     let cost_ratio = pt.cost / t.cost;
