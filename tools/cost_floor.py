@@ -20,12 +20,12 @@ Standard library only; not part of the pipeline or of `make test`.
 import argparse
 import re
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-TIME = re.compile(r" in ([0-9.]+)s \(scene build")
+from nppp_log import TIME, render_log
+
 RATE = re.compile(r"([0-9.]+) M samples/s")
 
 
@@ -36,12 +36,7 @@ def render(nppp, scene, spp, mode, p, threads, out):
         cmd += ["--min-bounces", str(p)]
     if threads:
         cmd += ["--threads", str(threads)]
-    run = subprocess.run(cmd, capture_output=True, text=True)
-    if run.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed:\n{run.stderr}")
-    t, r = TIME.search(run.stderr), RATE.search(run.stderr)
-    if not t or not r:
-        sys.exit(f"cannot read the time in the output of {' '.join(cmd)}:\n{run.stderr}")
+    _, (t, r) = render_log(cmd, TIME, RATE)
     return float(t.group(1)), float(r.group(1))
 
 

@@ -22,12 +22,12 @@ import argparse
 import re
 import shlex
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-TIME = re.compile(r" in ([0-9.]+)s \(scene build")
+from nppp_log import TIME, render_log
+
 MEAN = re.compile(r"mean rgb \[([-0-9.e+ ]+)\]")
 RELMSE = re.compile(r"relMSE ([0-9.e+-]+),")
 
@@ -37,13 +37,9 @@ def render(nppp, scene, spp, seed, flags, reference, out):
            "--out", out, "--quiet"] + flags
     if reference:
         cmd += ["--reference", reference]
-    run = subprocess.run(cmd, capture_output=True, text=True)
-    if run.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed:\n{run.stderr}")
-    t, m = TIME.search(run.stderr), MEAN.search(run.stderr)
-    r = RELMSE.search(run.stderr)
-    if not t or not m or (reference and not r):
-        sys.exit(f"cannot read the output of {' '.join(cmd)}:\n{run.stderr}")
+        _, (t, m, r) = render_log(cmd, TIME, MEAN, RELMSE)
+    else:
+        (_, (t, m)), r = render_log(cmd, TIME, MEAN), None
     mean = sum(float(x) for x in m.group(1).split()) / 3.0
     return float(t.group(1)), (float(r.group(1)) if r else None), mean
 

@@ -18,12 +18,12 @@ import argparse
 import json
 import re
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-TIME = re.compile(r" in ([0-9.]+)s \(scene build")
+from nppp_log import TIME, render_log
+
 TRACED = re.compile(r"traced: ([0-9.]+) M rays, ([0-9.]+) M shadow rays, ([0-9.]+) M BVH node visits "
                     r"\(([0-9.]+) M by camera rays\)")
 # What each render counted, in this order.
@@ -56,13 +56,8 @@ def configs(nee):
 def render(nppp, scene, spp, seed, flags, out):
     cmd = [nppp, "render", f"data/scenes/{scene}.json", "--spp", str(spp), "--seed", str(seed),
            "--out", out, "--quiet"] + flags
-    run = subprocess.run(cmd, capture_output=True, text=True)
-    if run.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed:\n{run.stderr}")
-    t, w = TIME.search(run.stderr), TRACED.search(run.stderr)
-    if not t or not w:
-        sys.exit(f"cannot read the output of {' '.join(cmd)}:\n{run.stderr}")
-    e = ENTRIES.search(run.stderr)
+    log, (t, w) = render_log(cmd, TIME, TRACED)
+    e = ENTRIES.search(log)
     rays, shadow, nodes, camera = (float(x) * 1e6 for x in w.groups())
     # Camera rays' node visits apart from the rest: coherent, cheaper.
     return float(t.group(1)), [camera, nodes - camera, rays, shadow, float(e.group(1)) if e else 0.0]
