@@ -83,8 +83,9 @@ pub struct PilotOptions {
     pub max_bounces: u32,
     pub seed: u64,
     /// Efficiency over PT's a configuration needs to be chosen. 1.10: at
-    /// 1.05 one seed in eight turned cornell-gold's estimator on (its PT
-    /// pilot caught a firefly), where it loses (0.69x at equal error).
+    /// 1.05 the 1-spp pilot (renders below 32 spp) turned cornell-gold's
+    /// estimator on at one seed in eight (its PT pilot caught a firefly),
+    /// where it loses (0.69x at equal error).
     pub margin: f64,
     /// Smallest P tried. 1 by default: at P = 0 what the camera sees of the
     /// object is the network's statistical answer (glass seen directly is
@@ -106,11 +107,12 @@ pub struct PilotOptions {
     pub bias_tolerance: f64,
     /// Prior standard deviation of the log of a configuration's variance
     /// over PT's; see [`efficiency`]. 0.35 (ratios of 0.7x to 1.4x are
-    /// typical a priori): chosen over 8 seeds of every scene in data/scenes
-    /// and data/scenes/variants, where it made cornell-jade's decision
-    /// (P = 0) at every seed and turned no losing estimator on; at 0.5
-    /// cornell-gold's turned on at one seed, at 1 jade's was off or P = 1
-    /// at two (BENCHMARKS.md, "auto").
+    /// typical a priori): chosen over 8 seeds of the benchmark scenes and
+    /// data/scenes/variants, where it made cornell-jade's decision (P = 0)
+    /// at every seed and turned no losing estimator on, with the pilots of
+    /// 1 and 4 spp per half; with the 1-spp pilot, at 0.5 cornell-gold's
+    /// turned on at one seed, at 1 jade's was off or P = 1 at two
+    /// (BENCHMARKS.md, "auto").
     pub variance_ratio_prior: f64,
     /// Efficiencies within this factor of each other are a tie, which the
     /// cheaper configuration wins (see [`choose`]).
