@@ -166,6 +166,24 @@ pub struct Trial {
     pub biased: bool,
 }
 
+impl Trial {
+    /// What its efficiency is made of, against PT's trial: "work 0.96x,
+    /// variance 0.79x +-45%" (the work and the variance per sample as
+    /// multiples of PT's, the latter with its relative standard error, the
+    /// part [`efficiency`] believes only in part).
+    pub fn against(&self, pt: &Trial) -> String {
+        let work = self.cost / pt.cost;
+        let var = self.rel_var / pt.rel_var;
+        let se = ((self.rel_var_se / self.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2))
+            .sqrt();
+        if work.is_finite() && var.is_finite() && se.is_finite() {
+            format!("work {work:.2}x, variance {var:.2}x +-{:.0}%", 100.0 * se)
+        } else {
+            "not measurable".into()
+        }
+    }
+}
+
 /// What the pilot decided for one estimator.
 #[derive(Clone, Debug)]
 pub struct EstimatorDecision {
@@ -205,7 +223,12 @@ impl Decision {
                         if t.biased {
                             format!("{} biased", label(t.choice))
                         } else {
-                            format!("{} {:.2}x", label(t.choice), t.efficiency)
+                            format!(
+                                "{} {:.2}x ({})",
+                                label(t.choice),
+                                t.efficiency,
+                                t.against(&self.pt)
+                            )
                         }
                     })
                     .collect::<Vec<_>>()
