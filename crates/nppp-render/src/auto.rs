@@ -652,6 +652,16 @@ mod tests {
         assert_eq!(choose(&[], &opts), None);
     }
 
+    #[test]
+    fn a_trial_says_what_its_efficiency_is_made_of() {
+        let pt = trial(1.0, 0.3, 40.0, None);
+        let t = trial(2.0, 0.8, 20.0, Some(1));
+        // se: sqrt(0.4^2 + 0.3^2) = 0.5.
+        assert_eq!(t.against(&pt), "work 0.50x, variance 2.00x +-50%");
+        let broken = trial(f64::INFINITY, f64::INFINITY, 20.0, Some(1));
+        assert_eq!(broken.against(&pt), "not measurable");
+    }
+
     proptest! {
         /// Shrinkage only ever moves the efficiency from its raw value
         /// towards the cost ratio, and more uncertainty moves it further.
