@@ -5,12 +5,15 @@
 //!
 //! The pilot renders the scene at a quarter of its resolution, 4 samples per
 //! pixel, twice (two seeds), as plain PT and once per candidate P (1 and 2;
-//! see [`PilotOptions::min_p`]) of each estimator (the others off). For
-//! each configuration it measures
+//! see [`PilotOptions::min_p`]) of each estimator (the others off); a
+//! candidate whose first half shows it too costly to tie the best one
+//! measured so far gets no second half ([`PilotOptions::hopeless_sigmas`]).
+//! For each configuration it measures
 //! - the error per sample: each pixel's variance from the two halves,
-//!   `(a - b)^2 / 4`, relative to the mean of all the pilot's renders as
-//!   relMSE is to its reference (`/ (r^2 + 0.01)`, `r` blurred over 5 x 5
-//!   pixels), averaged over pixels and channels;
+//!   `(a - b)^2 / 4`, relative to the mean of PT's halves and the
+//!   candidates' first halves as relMSE is to its reference (`/ (r^2 +
+//!   0.01)`, `r` blurred over 5 x 5 pixels), averaged over pixels and
+//!   channels;
 //! - the cost per sample: the work the render counted (BVH node visits, the
 //!   camera rays' apart, shadow rays, estimator entries) weighted by what
 //!   each costs ([`work_cost`]). Counted work, not the wall clock: the
@@ -30,7 +33,7 @@
 //! [`PilotOptions::tie`] of the best the cheapest wins ([`choose`]).
 //! Candidates are decided one estimator at a time, not by trying every
 //! combination. The pilot is 2-3% of a 64-spp render where PT is the
-//! cost, 12% on cornell-jade, where the estimator is 4x cheaper than PT.
+//! cost, 8% on cornell-jade, where the estimator is 4x cheaper than PT.
 
 use crate::estimator::{EntryNee, Estimators};
 use crate::image_io::Image;
@@ -117,6 +120,14 @@ pub struct PilotOptions {
     /// Efficiencies within this factor of each other are a tie, which the
     /// cheaper configuration wins (see [`choose`]).
     pub tie: f64,
+    /// A candidate gets its second pilot half only if its cost ratio to PT
+    /// times `exp(hopeless_sigmas x variance_ratio_prior)` (the efficiency
+    /// it would have with a variance that far below PT's: 0.42x at 2.5 and
+    /// 0.35, a priori 0.6% likely) reaches the best efficiency measured so
+    /// far for its estimator, within [`Self::tie`]. On cornell-jade P = 1
+    /// and 2 cost 0.72x and 0.96x of PT's per sample where P = 0 is 4x
+    /// more efficient: their second halves were a third of the pilot.
+    pub hopeless_sigmas: f64,
 }
 
 impl Default for PilotOptions {
@@ -133,6 +144,7 @@ impl Default for PilotOptions {
             bias_tolerance: 0.03,
             variance_ratio_prior: 0.35,
             tie: 1.15,
+            hopeless_sigmas: 2.5,
         }
     }
 }
@@ -164,6 +176,10 @@ pub struct Trial {
     /// Its mean differs from PT's by more than noise and
     /// [`PilotOptions::bias_tolerance`] allow: never chosen.
     pub biased: bool,
+    /// Not measured beyond its first half's cost: it could not have tied
+    /// the best configuration however low its variance ([`decide`]).
+    /// Never chosen; `rel_var` is infinite.
+    pub skipped: bool,
 }
 
 impl Trial {
@@ -222,6 +238,12 @@ impl Decision {
                     .map(|t| {
                         if t.biased {
                             format!("{} biased", label(t.choice))
+                        } else if t.skipped {
+                            format!(
+                                "{} not measured (work {:.2}x: cannot win)",
+                                label(t.choice),
+                                t.cost / self.pt.cost
+                            )
                         } else {
                             format!(
                                 "{} {:.2}x ({})",
@@ -290,9 +312,15 @@ fn candidates(est: &crate::estimator::Estimator, opts: &PilotOptions) -> Vec<Cho
         .collect()
 }
 
-/// One configuration's pilot: (estimator index and choice, or `None` for
-/// PT), its two halves, and its cost per sample.
-type PilotRender = (Option<(usize, Choice)>, Image, Image, f64);
+/// A candidate's first pilot half and the work it counted.
+struct FirstHalf {
+    index: usize,
+    choice: Choice,
+    image: Image,
+    /// Counted work of the half ([`work_cost`]) and its camera samples.
+    cost: f64,
+    samples: u64,
+}
 
 /// Runs the pilot on `rs` (its camera is swapped for the pilot's and put
 /// back) and returns the estimators configured as decided, `None` when all
@@ -330,45 +358,50 @@ pub fn decide(
     let seeds = [1u64, 2].map(|k| mix64(mix64(opts.seed) ^ (0xA070_0000_0000_0000 | k)));
 
     let base_instances = ests.per_instance.clone();
-    // Every pilot's two halves and cost per sample: PT first.
-    let mut pilots: Vec<PilotRender> = Vec::new();
+    // Estimator `index` alone, in configuration `choice`.
+    let configure = |ests: &mut Estimators, index: usize, choice: Choice| {
+        ests.per_instance = base_instances
+            .iter()
+            .map(|e| e.filter(|&i| i as usize == index))
+            .collect();
+        ests.configure_one(index, Some((choice.min_bounces, choice.entry_nee)));
+    };
+    // PT's two halves.
     let (pa, ca, na) = run(rs, seeds[0]);
     let (pb, cb, nb) = run(rs, seeds[1]);
-    pilots.push((None, pa, pb, (ca + cb) / (na + nb).max(1) as f64));
+    let pt_cost = (ca + cb) / (na + nb).max(1) as f64;
+    // Every candidate's first half: its cost per sample is then counted.
+    let mut firsts: Vec<FirstHalf> = Vec::new();
     for index in 0..ests.list.len() {
         for choice in candidates(&ests.list[index], opts) {
-            ests.per_instance = base_instances
-                .iter()
-                .map(|e| e.filter(|&i| i as usize == index))
-                .collect();
-            ests.configure_one(index, Some((choice.min_bounces, choice.entry_nee)));
+            configure(&mut ests, index, choice);
             rs.estimators = Some(ests);
-            let (a, ca, na) = run(rs, seeds[0]);
-            let (b, cb, nb) = run(rs, seeds[1]);
+            let (image, cost, n) = run(rs, seeds[0]);
             ests = rs.estimators.take().expect("put there above");
-            pilots.push((
-                Some((index, choice)),
-                a,
-                b,
-                (ca + cb) / (na + nb).max(1) as f64,
-            ));
+            firsts.push(FirstHalf {
+                index,
+                choice,
+                image,
+                cost,
+                samples: n,
+            });
         }
     }
-    rs.camera = camera;
 
-    // The error's normalization, as relMSE's reference: the mean of every
-    // pilot render (PT's and each candidate's halves), blurred over 5 x 5
-    // pixels. Unblurred, a few spp miss what is rare (light seen through
-    // glass), and any pixel the reference missed would make an answer there
-    // look like a huge error; made of one configuration's renders, its
-    // fireflies would normalize themselves away, while in the mean of all
-    // of them (and blurred) a firefly weighs 1 / (50 x configurations) of
-    // itself. A PT render of its own served before, at a third of PT's
-    // pilot cost (15% of the pilot on cornell-jade, where PT is 4x an
-    // entry-skipping configuration's cost).
+    // The error's normalization, as relMSE's reference: the mean of PT's
+    // halves and every candidate's first half, blurred over 5 x 5 pixels.
+    // Unblurred, a few spp miss what is rare (light seen through glass),
+    // and any pixel the reference missed would make an answer there look
+    // like a huge error; made of one configuration's renders, its fireflies
+    // would normalize themselves away, while in the mean of all of them
+    // (and blurred) a firefly weighs 1 / (25 x renders) of itself. A PT
+    // render of its own served before, at a third of PT's pilot cost.
     let norm = {
-        let renders: Vec<&Image> = pilots.iter().flat_map(|(_, a, b, _)| [a, b]).collect();
-        let mut mean = vec![[0.0f32; 3]; renders[0].pixels.len()];
+        let renders: Vec<&Image> = [&pa, &pb]
+            .into_iter()
+            .chain(firsts.iter().map(|f| &f.image))
+            .collect();
+        let mut mean = vec![[0.0f32; 3]; pa.pixels.len()];
         for img in &renders {
             for (m, p) in mean.iter_mut().zip(&img.pixels) {
                 for c in 0..3 {
@@ -394,26 +427,54 @@ pub fn decide(
             mean,
             mean_var,
             biased: false,
+            skipped: false,
         }
     };
-    let pt = trial(None, &pilots[0].1, &pilots[0].2, pilots[0].3);
+    let pt = trial(None, &pa, &pb, pt_cost);
+
+    // Per estimator, its candidates from the cheapest up: each gets its
+    // second half, unless even a variance far below PT's could not make it
+    // tie the best measured so far (see PilotOptions::hopeless_sigmas).
+    let optimism = (opts.hopeless_sigmas * opts.variance_ratio_prior).exp();
     let mut decisions = Vec::new();
     for index in 0..ests.list.len() {
-        let mut trials: Vec<Trial> = pilots
-            .iter()
-            .filter_map(|(c, a, b, cost)| match c {
-                Some((i, choice)) if *i == index => Some(trial(Some(*choice), a, b, *cost)),
-                _ => None,
-            })
-            .collect();
-        for t in trials.iter_mut() {
+        let mut mine: Vec<&FirstHalf> = firsts.iter().filter(|f| f.index == index).collect();
+        let per_sample = |f: &FirstHalf| f.cost / f.samples.max(1) as f64;
+        mine.sort_by(|a, b| per_sample(a).total_cmp(&per_sample(b)));
+        let mut trials: Vec<Trial> = Vec::new();
+        let mut best = 0.0f64;
+        for f in mine {
+            let cost_a = per_sample(f);
+            if best > 0.0 && pt_cost / cost_a * optimism * opts.tie < best {
+                trials.push(Trial {
+                    rel_var: f64::INFINITY,
+                    rel_var_se: f64::INFINITY,
+                    cost: cost_a,
+                    efficiency: 0.0,
+                    mean: f64::NAN,
+                    mean_var: f64::INFINITY,
+                    skipped: true,
+                    ..trial(Some(f.choice), &f.image, &f.image, cost_a)
+                });
+                continue;
+            }
+            configure(&mut ests, index, f.choice);
+            rs.estimators = Some(ests);
+            let (b, cb, nb) = run(rs, seeds[1]);
+            ests = rs.estimators.take().expect("put there above");
+            let cost = (f.cost + cb) / (f.samples + nb).max(1) as f64;
+            let mut t = trial(Some(f.choice), &f.image, &b, cost);
             let noise = 4.0 * (t.mean_var + pt.mean_var).sqrt();
             t.biased = (t.mean - pt.mean).abs() > noise + opts.bias_tolerance * pt.mean.abs();
             t.efficiency = if t.biased {
                 0.0
             } else {
-                efficiency(&pt, t, opts.variance_ratio_prior)
+                efficiency(&pt, &t, opts.variance_ratio_prior)
             };
+            if t.efficiency.is_finite() {
+                best = best.max(t.efficiency);
+            }
+            trials.push(t);
         }
         let choice = choose(&trials, opts);
         decisions.push(EstimatorDecision {
@@ -422,6 +483,7 @@ pub fn decide(
             trials,
         });
     }
+    rs.camera = camera;
     // The decided configuration.
     ests.per_instance = base_instances;
     for d in &decisions {
@@ -588,6 +650,7 @@ mod tests {
             mean: 0.5,
             mean_var: 0.0,
             biased: false,
+            skipped: false,
         }
     }
 

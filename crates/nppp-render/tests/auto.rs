@@ -113,3 +113,33 @@ fn a_biased_configuration_is_rejected() {
         d.estimators[0]
     );
 }
+
+#[test]
+fn a_configuration_that_cannot_win_is_not_measured_twice() {
+    // cornell-jade: P = 0 skips the medium walks (a quarter of PT's work
+    // per sample) and wins by multiples; P = 2 does nearly PT's work, and
+    // no variance the prior allows could make it tie P = 0.
+    let scene = load("cornell-jade.json", 128);
+    let mut rs = RenderScene::for_estimators(&scene);
+    let ests = Estimators::load(&scene, EstimatorMode::Neural, 0)
+        .unwrap()
+        .unwrap();
+    let opts = PilotOptions {
+        max_bounces: scene.render.max_bounces,
+        seed: 1,
+        ..Default::default()
+    };
+    let d = decide(&mut rs, ests, &opts).1;
+    let jade = &d.estimators[0];
+    assert_eq!(jade.choice.map(|c| c.min_bounces), Some(0), "{jade:?}");
+    let p2 = jade
+        .trials
+        .iter()
+        .find(|t| t.choice.is_some_and(|c| c.min_bounces == 2))
+        .unwrap();
+    assert!(p2.skipped && p2.efficiency == 0.0, "{p2:?}");
+    // Two PT halves, three first halves, one second half (P = 0's) at most
+    // two (P = 1's): never all eight.
+    let per_render = (d.width * d.height * opts.spp) as u64;
+    assert!(d.samples <= 7 * per_render, "{} samples", d.samples);
+}
