@@ -10,10 +10,9 @@
 //! measured so far gets no second half ([`PilotOptions::hopeless_sigmas`]).
 //! For each configuration it measures
 //! - the error per sample: each pixel's variance from the two halves,
-//!   `(a - b)^2 / 4`, relative to the mean of PT's halves and the
-//!   candidates' first halves as relMSE is to its reference (`/ (r^2 +
-//!   0.01)`, `r` blurred over 5 x 5 pixels), averaged over pixels and
-//!   channels;
+//!   `(a - b)^2 / 4`, relative to the mean of all the pilot's renders as
+//!   relMSE is to its reference (`/ (r^2 + 0.01)`, `r` blurred over 5 x 5
+//!   pixels), averaged over pixels and channels;
 //! - the cost per sample: the work the render counted (BVH node visits, the
 //!   camera rays' apart, shadow rays, estimator entries) weighted by what
 //!   each costs ([`work_cost`]). Counted work, not the wall clock: the
@@ -388,21 +387,19 @@ pub fn decide(
         }
     }
 
-    // The error's normalization, as relMSE's reference: the mean of PT's
-    // halves and every candidate's first half, blurred over 5 x 5 pixels.
-    // Unblurred, a few spp miss what is rare (light seen through glass),
-    // and any pixel the reference missed would make an answer there look
-    // like a huge error; made of one configuration's renders, its fireflies
-    // would normalize themselves away, while in the mean of all of them
-    // (and blurred) a firefly weighs 1 / (25 x renders) of itself. A PT
-    // render of its own served before, at a third of PT's pilot cost.
-    let norm = {
-        let renders: Vec<&Image> = [&pa, &pb]
-            .into_iter()
-            .chain(firsts.iter().map(|f| &f.image))
-            .collect();
+    // The error's normalization, as relMSE's reference: the mean of all
+    // the pilot's renders (PT's halves and each candidate's), blurred over
+    // 5 x 5 pixels. Unblurred, a few spp miss what is rare (light seen
+    // through glass), and any pixel the reference missed would make an
+    // answer there look like a huge error; made of one configuration's
+    // renders, its fireflies would normalize themselves away, while in the
+    // mean of all of them (and blurred) a firefly weighs 1 / (25 x renders)
+    // of itself. (A PT render of its own served before, at a third of PT's
+    // pilot cost.) While second halves are still being decided, the mean of
+    // those rendered so far serves.
+    let normalization = |renders: &[&Image]| {
         let mut mean = vec![[0.0f32; 3]; pa.pixels.len()];
-        for img in &renders {
+        for img in renders {
             for (m, p) in mean.iter_mut().zip(&img.pixels) {
                 for c in 0..3 {
                     // The film drops non-finite samples; a broken pilot
@@ -415,9 +412,9 @@ pub fn decide(
         }
         blur(&mean, width as usize, 2)
     };
-    let trial = |choice: Option<Choice>, a: &Image, b: &Image, cost: f64| {
+    let trial = |norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: f64| {
         let (mean, mean_var) = mean_and_variance(a, b);
-        let (rel_var, rel_var_se) = rel_var(a, b, &norm);
+        let (rel_var, rel_var_se) = rel_var(a, b, norm);
         Trial {
             choice,
             rel_var,
@@ -430,32 +427,40 @@ pub fn decide(
             skipped: false,
         }
     };
-    let pt = trial(None, &pa, &pb, pt_cost);
+    // Bias test and efficiency against PT's trial.
+    let score = |pt: &Trial, t: &mut Trial| {
+        let noise = 4.0 * (t.mean_var + pt.mean_var).sqrt();
+        t.biased = (t.mean - pt.mean).abs() > noise + opts.bias_tolerance * pt.mean.abs();
+        t.efficiency = if t.biased {
+            0.0
+        } else {
+            efficiency(pt, t, opts.variance_ratio_prior)
+        };
+    };
 
     // Per estimator, its candidates from the cheapest up: each gets its
     // second half, unless even a variance far below PT's could not make it
     // tie the best measured so far (see PilotOptions::hopeless_sigmas).
     let optimism = (opts.hopeless_sigmas * opts.variance_ratio_prior).exp();
-    let mut decisions = Vec::new();
+    let first_renders: Vec<&Image> = [&pa, &pb]
+        .into_iter()
+        .chain(firsts.iter().map(|f| &f.image))
+        .collect();
+    let first_norm = normalization(&first_renders);
+    let first_pt = trial(&first_norm, None, &pa, &pb, pt_cost);
+    // For each first half (same order): its second half and the pilot's
+    // cost per sample, or `None` when it cannot win.
+    let mut seconds: Vec<Option<(Image, f64)>> = firsts.iter().map(|_| None).collect();
+    let per_sample = |f: &FirstHalf| f.cost / f.samples.max(1) as f64;
     for index in 0..ests.list.len() {
-        let mut mine: Vec<&FirstHalf> = firsts.iter().filter(|f| f.index == index).collect();
-        let per_sample = |f: &FirstHalf| f.cost / f.samples.max(1) as f64;
-        mine.sort_by(|a, b| per_sample(a).total_cmp(&per_sample(b)));
-        let mut trials: Vec<Trial> = Vec::new();
+        let mut mine: Vec<usize> = (0..firsts.len())
+            .filter(|&k| firsts[k].index == index)
+            .collect();
+        mine.sort_by(|&a, &b| per_sample(&firsts[a]).total_cmp(&per_sample(&firsts[b])));
         let mut best = 0.0f64;
-        for f in mine {
-            let cost_a = per_sample(f);
-            if best > 0.0 && pt_cost / cost_a * optimism * opts.tie < best {
-                trials.push(Trial {
-                    rel_var: f64::INFINITY,
-                    rel_var_se: f64::INFINITY,
-                    cost: cost_a,
-                    efficiency: 0.0,
-                    mean: f64::NAN,
-                    mean_var: f64::INFINITY,
-                    skipped: true,
-                    ..trial(Some(f.choice), &f.image, &f.image, cost_a)
-                });
+        for k in mine {
+            let f = &firsts[k];
+            if best > 0.0 && pt_cost / per_sample(f) * optimism * opts.tie < best {
                 continue;
             }
             configure(&mut ests, index, f.choice);
@@ -463,18 +468,47 @@ pub fn decide(
             let (b, cb, nb) = run(rs, seeds[1]);
             ests = rs.estimators.take().expect("put there above");
             let cost = (f.cost + cb) / (f.samples + nb).max(1) as f64;
-            let mut t = trial(Some(f.choice), &f.image, &b, cost);
-            let noise = 4.0 * (t.mean_var + pt.mean_var).sqrt();
-            t.biased = (t.mean - pt.mean).abs() > noise + opts.bias_tolerance * pt.mean.abs();
-            t.efficiency = if t.biased {
-                0.0
-            } else {
-                efficiency(&pt, &t, opts.variance_ratio_prior)
-            };
+            let mut t = trial(&first_norm, Some(f.choice), &f.image, &b, cost);
+            score(&first_pt, &mut t);
             if t.efficiency.is_finite() {
                 best = best.max(t.efficiency);
             }
-            trials.push(t);
+            seconds[k] = Some((b, cost));
+        }
+    }
+
+    // The final measurements, against the normalization of every render.
+    let all_renders: Vec<&Image> = first_renders
+        .iter()
+        .copied()
+        .chain(seconds.iter().flatten().map(|(b, _)| b))
+        .collect();
+    let norm = normalization(&all_renders);
+    let pt = trial(&norm, None, &pa, &pb, pt_cost);
+    let mut decisions = Vec::new();
+    for index in 0..ests.list.len() {
+        let mut trials: Vec<Trial> = Vec::new();
+        for (f, second) in firsts
+            .iter()
+            .zip(&seconds)
+            .filter(|(f, _)| f.index == index)
+        {
+            trials.push(match second {
+                Some((b, cost)) => {
+                    let mut t = trial(&norm, Some(f.choice), &f.image, b, *cost);
+                    score(&pt, &mut t);
+                    t
+                }
+                None => Trial {
+                    rel_var: f64::INFINITY,
+                    rel_var_se: f64::INFINITY,
+                    efficiency: 0.0,
+                    mean: f64::NAN,
+                    mean_var: f64::INFINITY,
+                    skipped: true,
+                    ..trial(&norm, Some(f.choice), &f.image, &f.image, per_sample(f))
+                },
+            });
         }
         let choice = choose(&trials, opts);
         decisions.push(EstimatorDecision {
