@@ -32,7 +32,8 @@
 //! [`PilotOptions::tie`] of the best the cheapest wins ([`choose`]).
 //! Candidates are decided one estimator at a time, not by trying every
 //! combination. The pilot is 2-3% of a 64-spp render where PT is the
-//! cost, 8% on cornell-jade, where the estimator is 4x cheaper than PT.
+//! cost, about 9% on cornell-jade, where the estimator is 4x cheaper than
+//! PT.
 
 use crate::estimator::{EntryNee, Estimators};
 use crate::image_io::Image;
