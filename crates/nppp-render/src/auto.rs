@@ -183,6 +183,28 @@ pub struct Trial {
 }
 
 impl Trial {
+    /// A candidate not measured beyond its first half, whose cost per
+    /// sample that half counted (see [`Trial::skipped`]).
+    fn not_measured(choice: Choice, cost: f64) -> Self {
+        Self {
+            choice: Some(choice),
+            rel_var: f64::INFINITY,
+            rel_var_se: f64::INFINITY,
+            cost,
+            efficiency: 0.0,
+            mean: f64::NAN,
+            mean_var: f64::INFINITY,
+            biased: false,
+            skipped: true,
+        }
+    }
+
+    /// Variance of the log of this trial's variance ratio to `pt`'s (the
+    /// delta method: the sum of the two squared relative standard errors).
+    fn log_variance_ratio_var(&self, pt: &Trial) -> f64 {
+        (self.rel_var_se / self.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2)
+    }
+
     /// What its efficiency is made of, against PT's trial: "work 0.96x,
     /// variance 0.79x +-45%" (the work and the variance per sample as
     /// multiples of PT's, the latter with its relative standard error, the
@@ -190,8 +212,7 @@ impl Trial {
     pub fn against(&self, pt: &Trial) -> String {
         let work = self.cost / pt.cost;
         let var = self.rel_var / pt.rel_var;
-        let se = ((self.rel_var_se / self.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2))
-            .sqrt();
+        let se = self.log_variance_ratio_var(pt).sqrt();
         if work.is_finite() && var.is_finite() && se.is_finite() {
             format!("work {work:.2}x, variance {var:.2}x +-{:.0}%", 100.0 * se)
         } else {
@@ -500,15 +521,7 @@ pub fn decide(
                     score(&pt, &mut t);
                     t
                 }
-                None => Trial {
-                    rel_var: f64::INFINITY,
-                    rel_var_se: f64::INFINITY,
-                    efficiency: 0.0,
-                    mean: f64::NAN,
-                    mean_var: f64::INFINITY,
-                    skipped: true,
-                    ..trial(&norm, Some(f.choice), &f.image, &f.image, per_sample(f))
-                },
+                None => Trial::not_measured(f.choice, per_sample(f)),
             });
         }
         let choice = choose(&trials, opts);
@@ -657,7 +670,7 @@ pub fn efficiency(pt: &Trial, t: &Trial, tau: f64) -> f64 {
         return cost_ratio.min(1.0);
     }
     let r = (t.rel_var / pt.rel_var).ln();
-    let s2 = (t.rel_var_se / t.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2);
+    let s2 = t.log_variance_ratio_var(pt);
     let tau2 = tau * tau;
     let shrunk = if tau2 + s2 > 0.0 {
         r * tau2 / (tau2 + s2)

@@ -8,7 +8,7 @@
 mod common;
 use common::*;
 use nppp_render::RenderScene;
-use nppp_render::auto::{PilotOptions, decide};
+use nppp_render::auto::{Decision, EstimatorDecision, PilotOptions, Trial, decide};
 use nppp_render::estimator::{EstimatorMode, Estimators};
 
 /// The scene `name` of data/scenes, `width` pixels wide (0: as it is).
@@ -23,11 +23,17 @@ fn load(name: &str, width: u32) -> nppp_scene::Scene {
     scene
 }
 
-fn pilot(scene: &nppp_scene::Scene, threads: usize) -> nppp_render::auto::Decision {
+/// The pilot's decision for `scene`'s estimators with `opts`.
+fn decision(scene: &nppp_scene::Scene, opts: &PilotOptions) -> Decision {
     let mut rs = RenderScene::for_estimators(scene);
     let ests = Estimators::load(scene, EstimatorMode::Neural, 0)
         .unwrap()
         .unwrap();
+    decide(&mut rs, ests, opts).1
+}
+
+/// The default pilot (seed 3) on `threads` threads.
+fn pilot(scene: &nppp_scene::Scene, threads: usize) -> Decision {
     let opts = PilotOptions {
         max_bounces: scene.render.max_bounces,
         seed: 3,
@@ -37,7 +43,15 @@ fn pilot(scene: &nppp_scene::Scene, threads: usize) -> nppp_render::auto::Decisi
         .num_threads(threads)
         .build()
         .unwrap();
-    pool.install(|| decide(&mut rs, ests, &opts).1)
+    pool.install(|| decision(scene, &opts))
+}
+
+/// The trial of configuration P = `p`.
+fn trial_at(d: &EstimatorDecision, p: u32) -> &Trial {
+    d.trials
+        .iter()
+        .find(|t| t.choice.is_some_and(|c| c.min_bounces == p))
+        .unwrap_or_else(|| panic!("P = {p} not tried: {d:?}"))
 }
 
 #[test]
@@ -88,22 +102,14 @@ fn a_biased_configuration_is_rejected() {
     // PT's light in the tube above its own noise.
     // P = 0 is not tried by default (PilotOptions::min_p): ask for it.
     let scene = load("tube.json", 0);
-    let mut rs = RenderScene::for_estimators(&scene);
-    let ests = Estimators::load(&scene, EstimatorMode::Neural, 0)
-        .unwrap()
-        .unwrap();
     let opts = PilotOptions {
         max_bounces: scene.render.max_bounces,
         seed: 3,
         min_p: 0,
         ..Default::default()
     };
-    let d = decide(&mut rs, ests, &opts).1;
-    let p0 = d.estimators[0]
-        .trials
-        .iter()
-        .find(|t| t.choice.is_some_and(|c| c.min_bounces == 0))
-        .unwrap();
+    let d = decision(&scene, &opts);
+    let p0 = trial_at(&d.estimators[0], 0);
     assert!(p0.biased, "P = 0 on the tube: {p0:?} against PT {:?}", d.pt);
     assert_eq!(p0.efficiency, 0.0);
     assert_ne!(
@@ -120,23 +126,15 @@ fn a_configuration_that_cannot_win_is_not_measured_twice() {
     // per sample) and wins by multiples; P = 2 does nearly PT's work, and
     // no variance the prior allows could make it tie P = 0.
     let scene = load("cornell-jade.json", 128);
-    let mut rs = RenderScene::for_estimators(&scene);
-    let ests = Estimators::load(&scene, EstimatorMode::Neural, 0)
-        .unwrap()
-        .unwrap();
     let opts = PilotOptions {
         max_bounces: scene.render.max_bounces,
         seed: 1,
         ..Default::default()
     };
-    let d = decide(&mut rs, ests, &opts).1;
+    let d = decision(&scene, &opts);
     let jade = &d.estimators[0];
     assert_eq!(jade.choice.map(|c| c.min_bounces), Some(0), "{jade:?}");
-    let p2 = jade
-        .trials
-        .iter()
-        .find(|t| t.choice.is_some_and(|c| c.min_bounces == 2))
-        .unwrap();
+    let p2 = trial_at(jade, 2);
     assert!(p2.skipped && p2.efficiency == 0.0, "{p2:?}");
     // Two PT halves, three first halves, one second half (P = 0's) at most
     // two (P = 1's): never all eight.
