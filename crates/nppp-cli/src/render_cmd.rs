@@ -405,8 +405,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if auto && let Some(ests) = rs.estimators.take() {
         let names = estimator_names(&scene, &ests);
         let t = std::time::Instant::now();
-        // A pilot of a few percent of the render: 4 spp per half for a
-        // 64-spp render, down to 1 below 32 spp.
+        // A pilot of a few percent of the render, sized to its budget: two
+        // halves of spp / 16 at a quarter of the resolution (4 spp per half
+        // for a 64-spp render), at least 1 and at most 16 per half. The
+        // pilot's variance ratios are heavy-tailed (a caustic or a long
+        // medium walk caught or missed) and tighten only with more samples:
+        // a longer render can afford a pilot that sees more of them.
         // The scene's P is the contract's "used only once the path has made
         // at least P bounces": auto may choose a larger P, or none, never a
         // smaller one (and never 0 but for translucent objects, see
@@ -417,7 +421,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         let pilot = nppp_render::auto::PilotOptions {
             max_bounces: settings.max_bounces,
             seed: settings.seed,
-            spp: (settings.spp / 16).clamp(1, 4),
+            spp: (settings.spp / 16).clamp(1, 16),
             min_p,
             min_p_medium,
             max_p: defaults.max_p.max(min_p),

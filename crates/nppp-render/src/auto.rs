@@ -3,8 +3,9 @@
 //! surface can take a light sample), by measured efficiency against plain
 //! path tracing.
 //!
-//! The pilot renders the scene at a quarter of its resolution, 4 samples per
-//! pixel, twice (two seeds), as plain PT and once per candidate P (1 and 2;
+//! The pilot renders the scene at a quarter of its resolution, a few
+//! samples per pixel (`nppp render` gives it a sixteenth of the render's,
+//! 1 to 16), twice (two seeds), as plain PT and once per candidate P (1 and 2;
 //! see [`PilotOptions::min_p`]) of each estimator (the others off); a
 //! candidate whose first half shows it too costly to tie the best one
 //! measured so far gets no second half ([`PilotOptions::hopeless_sigmas`]).
@@ -165,6 +166,10 @@ pub struct Trial {
     pub rel_var: f64,
     /// Standard error of `rel_var`, from its spread over pixels.
     pub rel_var_se: f64,
+    /// Relative variance per pixel (`rel_var` is their mean): with PT's,
+    /// the standard error of the ratio of the two
+    /// ([`Trial::log_variance_ratio_var`]). Empty where not measured.
+    pub pixel_rel_var: Vec<f64>,
     /// Work per sample, node-visit equivalents.
     pub cost: f64,
     /// Efficiency as a multiple of PT's (0 when rejected as biased).
@@ -190,6 +195,7 @@ impl Trial {
             choice: Some(choice),
             rel_var: f64::INFINITY,
             rel_var_se: f64::INFINITY,
+            pixel_rel_var: Vec::new(),
             cost,
             efficiency: 0.0,
             mean: f64::NAN,
@@ -199,10 +205,29 @@ impl Trial {
         }
     }
 
-    /// Variance of the log of this trial's variance ratio to `pt`'s (the
-    /// delta method: the sum of the two squared relative standard errors).
+    /// Variance of the log of this trial's variance ratio to `pt`'s, by the
+    /// delta method for a ratio of two means over the same pixels:
+    /// `Var(v_t / mean_t - v_pt / mean_pt) / n` over pixels. The pilot
+    /// renders PT and every candidate with the same seeds (common random
+    /// numbers): their paths agree until they enter the estimator's sphere,
+    /// and so do the pixel errors those paths make, which cancel in the
+    /// difference. Treating the two as independent (the sum of the squared
+    /// relative standard errors, what serves when the per-pixel values are
+    /// missing) overstated the uncertainty of a small variance change,
+    /// cornell-glass P = 1's, which [`efficiency`] then discounted.
     fn log_variance_ratio_var(&self, pt: &Trial) -> f64 {
-        (self.rel_var_se / self.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2)
+        let n = self.pixel_rel_var.len();
+        if n < 2 || n != pt.pixel_rel_var.len() {
+            return (self.rel_var_se / self.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2);
+        }
+        let diff: Vec<f64> = self
+            .pixel_rel_var
+            .iter()
+            .zip(&pt.pixel_rel_var)
+            .map(|(t, p)| t / self.rel_var - p / pt.rel_var)
+            .collect();
+        let se = mean_and_standard_error(&diff).1;
+        se * se
     }
 
     /// What its efficiency is made of, against PT's trial: "work 0.96x,
@@ -436,11 +461,13 @@ pub fn decide(
     };
     let trial = |norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: f64| {
         let (mean, mean_var) = mean_and_variance(a, b);
-        let (rel_var, rel_var_se) = rel_var(a, b, norm);
+        let pixel_rel_var = pixel_rel_var(a, b, norm);
+        let (rel_var, rel_var_se) = mean_and_standard_error(&pixel_rel_var);
         Trial {
             choice,
             rel_var,
             rel_var_se,
+            pixel_rel_var,
             cost,
             efficiency: 1.0,
             mean,
@@ -617,22 +644,39 @@ fn mean_and_variance(a: &Image, b: &Image) -> (f64, f64) {
 }
 
 /// Variance of the two halves' mean per pixel, relative to `norm` as relMSE
-/// is to its reference, averaged over pixels and channels, and the standard
-/// error of that average (from its spread over pixels, the unit of
-/// independent samples). Non-finite pixels count as infinite error.
-fn rel_var(a: &Image, b: &Image, norm: &[[f32; 3]]) -> (f64, f64) {
+/// is to its reference, averaged over channels: one value per pixel, whose
+/// mean is the trial's relative variance per pixel. Non-finite pixels count
+/// as infinite error.
+fn pixel_rel_var(a: &Image, b: &Image, norm: &[[f32; 3]]) -> Vec<f64> {
+    a.pixels
+        .iter()
+        .zip(&b.pixels)
+        .zip(norm)
+        .map(|((x, y), r)| {
+            let mut pixel = 0.0f64;
+            for c in 0..3 {
+                let d = (x[c] - y[c]) as f64;
+                let r = r[c] as f64;
+                pixel += 0.25 * d * d / (r * r + 0.01) / 3.0;
+            }
+            if pixel.is_finite() {
+                pixel
+            } else {
+                f64::INFINITY
+            }
+        })
+        .collect()
+}
+
+/// The mean of `values` and the standard error of that mean (from their
+/// spread: pixels are the unit of independent samples); infinite when any
+/// value is.
+fn mean_and_standard_error(values: &[f64]) -> (f64, f64) {
+    let n = values.len();
     let (mut sum, mut sum_sq) = (0.0f64, 0.0f64);
-    let mut n = 0usize;
-    for ((x, y), r) in a.pixels.iter().zip(&b.pixels).zip(norm) {
-        let mut pixel = 0.0f64;
-        for c in 0..3 {
-            let d = (x[c] - y[c]) as f64;
-            let r = r[c] as f64;
-            pixel += 0.25 * d * d / (r * r + 0.01) / 3.0;
-        }
-        sum += pixel;
-        sum_sq += pixel * pixel;
-        n += 1;
+    for v in values {
+        sum += v;
+        sum_sq += v * v;
     }
     if n == 0 || !sum_sq.is_finite() {
         return (f64::INFINITY, f64::INFINITY);
@@ -654,9 +698,9 @@ fn rel_var(a: &Image, b: &Image, norm: &[[f32; 3]]) -> (f64, f64) {
 /// configuration catching one firefly that another missed moved the
 /// measured ratio by 10x-100x between seeds (BENCHMARKS.md, "auto").
 /// Treating the log variance ratio `r` as normally distributed around the
-/// truth with the delta-method variance `s2 = (se_t / v_t)^2 + (se_pt /
-/// v_pt)^2` (each standard error from the spread over pixels, so a single
-/// firefly makes it as large as the value), and the truth as drawn from a
+/// truth with the delta-method variance `s2` of
+/// [`Trial::log_variance_ratio_var`] (from the spread over pixels, so a
+/// single firefly makes it as large as the ratio), and the truth as drawn from a
 /// prior `N(0, tau^2)`, the posterior mean is `r tau^2 / (tau^2 + s2)`: a
 /// ratio measured from many similar pixels is kept, one made by a few
 /// pixels is pulled towards 1, where the exactly counted cost decides.
@@ -693,6 +737,7 @@ mod tests {
             }),
             rel_var,
             rel_var_se,
+            pixel_rel_var: Vec::new(),
             cost,
             efficiency: 0.0,
             mean: 0.5,
@@ -723,6 +768,44 @@ mod tests {
         let cost_ratio = 170.0 / 42.0;
         assert!(e > 0.5 * cost_ratio && e < cost_ratio, "{e}");
         assert!(e > 50.0 * efficiency(&pt, &t, 1e9), "{e}");
+    }
+
+    /// A trial measured pixel by pixel, as the pilot makes them.
+    fn trial_of_pixels(pixels: Vec<f64>, cost: f64, min_bounces: Option<u32>) -> Trial {
+        let (rel_var, rel_var_se) = mean_and_standard_error(&pixels);
+        Trial {
+            pixel_rel_var: pixels,
+            ..trial(rel_var, rel_var_se, cost, min_bounces)
+        }
+    }
+
+    #[test]
+    fn errors_shared_with_pt_pixel_by_pixel_do_not_blur_the_ratio() {
+        // PT's pixel errors spread widely (a few bright pixels); the
+        // candidate's follow them at 0.8x, as paths that agree with PT's
+        // (same seeds) until they meet the estimator do.
+        let pt_pixels: Vec<f64> = (0..64)
+            .map(|i| if i % 16 == 0 { 50.0 } else { 1.0 })
+            .collect();
+        let pt = trial_of_pixels(pt_pixels.clone(), 40.0, None);
+        let follows = trial_of_pixels(pt_pixels.iter().map(|v| 0.8 * v).collect(), 40.0, Some(1));
+        assert!(follows.log_variance_ratio_var(&pt) < 1e-20);
+        assert!((efficiency(&pt, &follows, 0.35) - 1.25).abs() < 1e-9);
+        // The same two spreads, but in different pixels (the candidate's
+        // bright pixels are not PT's): the ratio is as uncertain as the
+        // two spreads say, and it is discounted.
+        let mut shifted = pt_pixels.iter().map(|v| 0.8 * v).collect::<Vec<_>>();
+        shifted.rotate_left(8);
+        let apart = trial_of_pixels(shifted, 40.0, Some(1));
+        let independent =
+            (apart.rel_var_se / apart.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2);
+        let paired = apart.log_variance_ratio_var(&pt);
+        assert!(
+            (paired / independent - 1.0).abs() < 0.2,
+            "{paired} {independent}"
+        );
+        let e = efficiency(&pt, &apart, 0.35);
+        assert!(e > 1.0 && e < 1.2, "{e}");
     }
 
     #[test]
