@@ -4,7 +4,9 @@
 //! through the estimator interface the renderer calls
 //! (`EstimatorSampler::sample_batch`: latent lookup, noise, decoder, inverse
 //! transform) and the decoder backends alone (`ExitDecoder::decode`): the
-//! plain-Rust CPU decoder and Burn's CPU backends.
+//! plain-Rust CPU decoder and Burn's CPU backends; and the 16 standard
+//! normals an entry draws for the decoder's noise (`SampleRng::normal`, the
+//! ziggurat, against the Box-Muller it replaced).
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use nppp_estimator::{
@@ -122,5 +124,33 @@ fn decoder(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, grids, decoder);
+/// Box-Muller as `SampleRng::normal` drew before it used the ziggurat
+/// (one of the pair discarded): the bench's reference.
+fn box_muller(rng: &mut SampleRng) -> f32 {
+    let u1 = 1.0 - rng.uniform();
+    let u2 = rng.uniform();
+    (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+}
+
+fn noise(c: &mut Criterion) {
+    let mut g = c.benchmark_group("noise_16_normals");
+    g.throughput(Throughput::Elements(16));
+    let mut out = [0.0f32; 16];
+    let mut rng = SampleRng::from_seed(7);
+    g.bench_function("ziggurat", |b| {
+        b.iter(|| {
+            out.iter_mut().for_each(|x| *x = rng.normal());
+            out[15]
+        })
+    });
+    g.bench_function("box_muller", |b| {
+        b.iter(|| {
+            out.iter_mut().for_each(|x| *x = box_muller(&mut rng));
+            out[15]
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, grids, decoder, noise);
 criterion_main!(benches);
