@@ -7,8 +7,9 @@
 //! samples per pixel (`nppp render` gives it a sixteenth of the render's,
 //! 1 to 16), twice (two seeds), as plain PT and once per candidate P (1 and 2;
 //! see [`PilotOptions::min_p`]) of each estimator (the others off); a
-//! candidate whose first half shows it too costly to tie the best one
-//! measured so far gets no second half ([`PilotOptions::hopeless_sigmas`]).
+//! candidate whose first sample per pixel shows it too costly to tie the
+//! best one measured so far is not rendered further
+//! ([`PilotOptions::hopeless_sigmas`]).
 //! For each configuration it measures
 //! - the error per sample: each pixel's variance from the two halves,
 //!   `(a - b)^2 / 4`, relative to the mean of all the pilot's renders as
@@ -37,9 +38,10 @@
 //! PT.
 
 use crate::estimator::{EntryNee, Estimators};
+use crate::film::PixelSum;
 use crate::image_io::Image;
 use crate::integrator::WorkCounts;
-use crate::render::{RenderOptions, render};
+use crate::render::{RenderOptions, render_film};
 use crate::scene_data::RenderScene;
 use crate::surface::SurfaceKind;
 use nppp_geom::rng::mix64;
@@ -121,13 +123,14 @@ pub struct PilotOptions {
     /// Efficiencies within this factor of each other are a tie, which the
     /// cheaper configuration wins (see [`choose`]).
     pub tie: f64,
-    /// A candidate gets its second pilot half only if its cost ratio to PT
-    /// times `exp(hopeless_sigmas x variance_ratio_prior)` (the efficiency
-    /// it would have with a variance that far below PT's: 0.42x at 2.5 and
+    /// A candidate gets its pilot halves only if its cost ratio to PT
+    /// (counted on its first sample per pixel) times
+    /// `exp(hopeless_sigmas x variance_ratio_prior)` (the efficiency it
+    /// would have with a variance that far below PT's: 0.42x at 2.5 and
     /// 0.35, a priori 0.6% likely) reaches the best efficiency measured so
     /// far for its estimator, within [`Self::tie`]. On cornell-jade P = 1
     /// and 2 cost 0.72x and 0.96x of PT's per sample where P = 0 is 4x
-    /// more efficient: their second halves were a third of the pilot.
+    /// more efficient: their halves were 40% of the pilot.
     pub hopeless_sigmas: f64,
 }
 
@@ -181,15 +184,16 @@ pub struct Trial {
     /// Its mean differs from PT's by more than noise and
     /// [`PilotOptions::bias_tolerance`] allow: never chosen.
     pub biased: bool,
-    /// Not measured beyond its first half's cost: it could not have tied
-    /// the best configuration however low its variance ([`decide`]).
+    /// Not measured beyond its cost, counted on its first sample per
+    /// pixel: it could not have tied the best configuration however low
+    /// its variance ([`decide`]).
     /// Never chosen; `rel_var` is infinite.
     pub skipped: bool,
 }
 
 impl Trial {
-    /// A candidate not measured beyond its first half, whose cost per
-    /// sample that half counted (see [`Trial::skipped`]).
+    /// A candidate not measured beyond its first sample per pixel, whose
+    /// cost per sample that sample counted (see [`Trial::skipped`]).
     fn not_measured(choice: Choice, cost: f64) -> Self {
         Self {
             choice: Some(choice),
@@ -359,14 +363,31 @@ fn candidates(est: &crate::estimator::Estimator, opts: &PilotOptions) -> Vec<Cho
         .collect()
 }
 
-/// A candidate's first pilot half and the work it counted.
-struct FirstHalf {
+/// A candidate's first sample per pixel of its first pilot half: what it
+/// costs per sample, counted, before the rest of the pilot is spent on it.
+struct Probe {
     index: usize,
     choice: Choice,
-    image: Image,
-    /// Counted work of the half ([`work_cost`]) and its camera samples.
+    film: Vec<PixelSum>,
+    /// Counted work of the probe ([`work_cost`]) and its camera samples.
     cost: f64,
     samples: u64,
+}
+
+impl Probe {
+    fn cost_per_sample(&self) -> f64 {
+        self.cost / self.samples.max(1) as f64
+    }
+}
+
+/// A candidate measured with both pilot halves.
+struct Measured {
+    index: usize,
+    choice: Choice,
+    a: Image,
+    b: Image,
+    /// Counted work per sample over both halves.
+    cost: f64,
 }
 
 /// Runs the pilot on `rs` (its camera is swapped for the pilot's and put
@@ -387,8 +408,10 @@ pub fn decide(
     rs.camera = camera.scaled(scale);
     let (width, height) = (rs.camera.width, rs.camera.height);
     let mut samples = 0u64;
-    let mut run = |rs: &RenderScene, seed: u64| {
-        let (img, st) = render(
+    // Samples `range` of a half rendered with `seed`: films of disjoint
+    // ranges merge into exactly the film of their union.
+    let mut run = |rs: &RenderScene, seed: u64, range: std::ops::Range<u32>| {
+        let (film, st) = render_film(
             rs,
             &RenderOptions {
                 spp: opts.spp,
@@ -396,13 +419,20 @@ pub fn decide(
                 seed,
                 progress: false,
             },
+            range,
         );
         samples += st.samples;
-        (img, work_cost(&st.work, st.estimators.entries), st.samples)
+        (film, work_cost(&st.work, st.estimators.entries), st.samples)
+    };
+    let image = |film: &[PixelSum]| Image {
+        width,
+        height,
+        pixels: film.iter().map(PixelSum::mean).collect(),
     };
     // Hashed, so that the pilots of different render seeds share no
     // stream (XOR with small constants mapped seed 0's pilots onto seed 3's).
     let seeds = [1u64, 2].map(|k| mix64(mix64(opts.seed) ^ (0xA070_0000_0000_0000 | k)));
+    let whole = 0..opts.spp;
 
     let base_instances = ests.per_instance.clone();
     // Estimator `index` alone, in configuration `choice`.
@@ -414,21 +444,24 @@ pub fn decide(
         ests.configure_one(index, Some((choice.min_bounces, choice.entry_nee)));
     };
     // PT's two halves.
-    let (pa, ca, na) = run(rs, seeds[0]);
-    let (pb, cb, nb) = run(rs, seeds[1]);
+    let (fa, ca, na) = run(rs, seeds[0], whole.clone());
+    let (fb, cb, nb) = run(rs, seeds[1], whole.clone());
+    let (pa, pb) = (image(&fa), image(&fb));
     let pt_cost = (ca + cb) / (na + nb).max(1) as f64;
-    // Every candidate's first half: its cost per sample is then counted.
-    let mut firsts: Vec<FirstHalf> = Vec::new();
+    // Every candidate's first sample per pixel: its cost per sample is then
+    // counted, at a fraction of a half (a quarter of the 4-spp pilot), and
+    // the sample is the start of its first half if it goes on.
+    let mut probes: Vec<Probe> = Vec::new();
     for index in 0..ests.list.len() {
         for choice in candidates(&ests.list[index], opts) {
             configure(&mut ests, index, choice);
             rs.estimators = Some(ests);
-            let (image, cost, n) = run(rs, seeds[0]);
+            let (film, cost, n) = run(rs, seeds[0], 0..1);
             ests = rs.estimators.take().expect("put there above");
-            firsts.push(FirstHalf {
+            probes.push(Probe {
                 index,
                 choice,
-                image,
+                film,
                 cost,
                 samples: n,
             });
@@ -436,15 +469,15 @@ pub fn decide(
     }
 
     // The error's normalization, as relMSE's reference: the mean of all
-    // the pilot's renders (PT's halves and each candidate's), blurred over
-    // 5 x 5 pixels. Unblurred, a few spp miss what is rare (light seen
-    // through glass), and any pixel the reference missed would make an
-    // answer there look like a huge error; made of one configuration's
-    // renders, its fireflies would normalize themselves away, while in the
-    // mean of all of them (and blurred) a firefly weighs 1 / (25 x renders)
-    // of itself. (A PT render of its own served before, at a third of PT's
-    // pilot cost.) While second halves are still being decided, the mean of
-    // those rendered so far serves.
+    // the pilot's renders (PT's halves and each measured candidate's),
+    // blurred over 5 x 5 pixels. Unblurred, a few spp miss what is rare
+    // (light seen through glass), and any pixel the reference missed would
+    // make an answer there look like a huge error; made of one
+    // configuration's renders, its fireflies would normalize themselves
+    // away, while in the mean of all of them (and blurred) a firefly weighs
+    // 1 / (25 x renders) of itself. (A PT render of its own served before,
+    // at a third of PT's pilot cost.) While candidates are still being
+    // measured, the mean of those rendered so far serves.
     let normalization = |renders: &[&Image]| {
         let mut mean = vec![[0.0f32; 3]; pa.pixels.len()];
         for img in renders {
@@ -460,6 +493,12 @@ pub fn decide(
         }
         blur(&mean, width as usize, 2)
     };
+    // PT's halves and every measured candidate's.
+    fn renders<'a>(pt: [&'a Image; 2], measured: &'a [Measured]) -> Vec<&'a Image> {
+        pt.into_iter()
+            .chain(measured.iter().flat_map(|m| [&m.a, &m.b]))
+            .collect()
+    }
     let trial = |norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: f64| {
         let (mean, mean_var) = mean_and_variance(a, b);
         let pixel_rel_var = pixel_rel_var(a, b, norm);
@@ -488,68 +527,78 @@ pub fn decide(
         };
     };
 
-    // Per estimator, its candidates from the cheapest up: each gets its
-    // second half, unless even a variance far below PT's could not make it
-    // tie the best measured so far (see PilotOptions::hopeless_sigmas).
+    // Per estimator, its candidates from the cheapest up: each gets the
+    // rest of its first half and its second half, unless even a variance
+    // far below PT's could not make it tie the best measured so far (see
+    // PilotOptions::hopeless_sigmas).
     let optimism = (opts.hopeless_sigmas * opts.variance_ratio_prior).exp();
-    let first_renders: Vec<&Image> = [&pa, &pb]
-        .into_iter()
-        .chain(firsts.iter().map(|f| &f.image))
-        .collect();
-    let first_norm = normalization(&first_renders);
-    let first_pt = trial(&first_norm, None, &pa, &pb, pt_cost);
-    // For each first half (same order): its second half and the pilot's
-    // cost per sample, or `None` when it cannot win.
-    let mut seconds: Vec<Option<(Image, f64)>> = firsts.iter().map(|_| None).collect();
-    let per_sample = |f: &FirstHalf| f.cost / f.samples.max(1) as f64;
+    let mut measured: Vec<Measured> = Vec::new();
+    let mut skipped: Vec<usize> = Vec::new();
     for index in 0..ests.list.len() {
-        let mut mine: Vec<usize> = (0..firsts.len())
-            .filter(|&k| firsts[k].index == index)
+        let mut mine: Vec<usize> = (0..probes.len())
+            .filter(|&k| probes[k].index == index)
             .collect();
-        mine.sort_by(|&a, &b| per_sample(&firsts[a]).total_cmp(&per_sample(&firsts[b])));
+        mine.sort_by(|&a, &b| {
+            probes[a]
+                .cost_per_sample()
+                .total_cmp(&probes[b].cost_per_sample())
+        });
         let mut best = 0.0f64;
         for k in mine {
-            let f = &firsts[k];
-            if best > 0.0 && pt_cost / per_sample(f) * optimism * opts.tie < best {
+            let probe = &probes[k];
+            if best > 0.0 && pt_cost / probe.cost_per_sample() * optimism * opts.tie < best {
+                skipped.push(k);
                 continue;
             }
-            configure(&mut ests, index, f.choice);
+            configure(&mut ests, index, probe.choice);
             rs.estimators = Some(ests);
-            let (b, cb, nb) = run(rs, seeds[1]);
+            let (mut first, c1, n1) = run(rs, seeds[0], 1..opts.spp);
+            let (second, c2, n2) = run(rs, seeds[1], whole.clone());
             ests = rs.estimators.take().expect("put there above");
-            let cost = (f.cost + cb) / (f.samples + nb).max(1) as f64;
-            let mut t = trial(&first_norm, Some(f.choice), &f.image, &b, cost);
-            score(&first_pt, &mut t);
+            for (f, p) in first.iter_mut().zip(&probe.film) {
+                f.merge(p);
+            }
+            let cost = (probe.cost + c1 + c2) / (probe.samples + n1 + n2).max(1) as f64;
+            let m = Measured {
+                index,
+                choice: probe.choice,
+                a: image(&first),
+                b: image(&second),
+                cost,
+            };
+            let so_far = renders([&pa, &pb], &measured);
+            let norm = normalization(&[so_far, vec![&m.a, &m.b]].concat());
+            let pt = trial(&norm, None, &pa, &pb, pt_cost);
+            let mut t = trial(&norm, Some(m.choice), &m.a, &m.b, m.cost);
+            score(&pt, &mut t);
             if t.efficiency.is_finite() {
                 best = best.max(t.efficiency);
             }
-            seconds[k] = Some((b, cost));
+            measured.push(m);
         }
     }
 
     // The final measurements, against the normalization of every render.
-    let all_renders: Vec<&Image> = first_renders
-        .iter()
-        .copied()
-        .chain(seconds.iter().flatten().map(|(b, _)| b))
-        .collect();
-    let norm = normalization(&all_renders);
+    let norm = normalization(&renders([&pa, &pb], &measured));
     let pt = trial(&norm, None, &pa, &pb, pt_cost);
     let mut decisions = Vec::new();
     for index in 0..ests.list.len() {
+        // In candidate order (P ascending), as printed.
         let mut trials: Vec<Trial> = Vec::new();
-        for (f, second) in firsts
-            .iter()
-            .zip(&seconds)
-            .filter(|(f, _)| f.index == index)
-        {
-            trials.push(match second {
-                Some((b, cost)) => {
-                    let mut t = trial(&norm, Some(f.choice), &f.image, b, *cost);
+        for (k, probe) in probes.iter().enumerate().filter(|(_, p)| p.index == index) {
+            let done = measured
+                .iter()
+                .find(|m| m.index == index && m.choice == probe.choice);
+            trials.push(match done {
+                Some(m) => {
+                    let mut t = trial(&norm, Some(m.choice), &m.a, &m.b, m.cost);
                     score(&pt, &mut t);
                     t
                 }
-                None => Trial::not_measured(f.choice, per_sample(f)),
+                None => {
+                    debug_assert!(skipped.contains(&k));
+                    Trial::not_measured(probe.choice, probe.cost_per_sample())
+                }
             });
         }
         let choice = choose(&trials, opts);

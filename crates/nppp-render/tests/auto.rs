@@ -136,8 +136,10 @@ fn a_configuration_that_cannot_win_is_not_measured_twice() {
     assert_eq!(jade.choice.map(|c| c.min_bounces), Some(0), "{jade:?}");
     let p2 = trial_at(jade, 2);
     assert!(p2.skipped && p2.efficiency == 0.0, "{p2:?}");
-    // Two PT halves, three first halves, one second half (P = 0's) at most
-    // two (P = 1's): never all eight.
-    let per_render = (d.width * d.height * opts.spp) as u64;
-    assert!(d.samples <= 7 * per_render, "{} samples", d.samples);
+    // Two PT halves, three probes of one sample per pixel (each the start
+    // of its candidate's first half), P = 0's two halves and at most
+    // P = 1's: never the eight halves of measuring every candidate.
+    let pixels = (d.width * d.height) as u64;
+    let per_half = pixels * opts.spp as u64;
+    assert!(d.samples <= 6 * per_half + pixels, "{} samples", d.samples);
 }
