@@ -533,7 +533,6 @@ pub fn decide(
     // PilotOptions::hopeless_sigmas).
     let optimism = (opts.hopeless_sigmas * opts.variance_ratio_prior).exp();
     let mut measured: Vec<Measured> = Vec::new();
-    let mut skipped: Vec<usize> = Vec::new();
     for index in 0..ests.list.len() {
         let mut mine: Vec<usize> = (0..probes.len())
             .filter(|&k| probes[k].index == index)
@@ -547,7 +546,6 @@ pub fn decide(
         for k in mine {
             let probe = &probes[k];
             if best > 0.0 && pt_cost / probe.cost_per_sample() * optimism * opts.tie < best {
-                skipped.push(k);
                 continue;
             }
             configure(&mut ests, index, probe.choice);
@@ -585,7 +583,7 @@ pub fn decide(
     for index in 0..ests.list.len() {
         // In candidate order (P ascending), as printed.
         let mut trials: Vec<Trial> = Vec::new();
-        for (k, probe) in probes.iter().enumerate().filter(|(_, p)| p.index == index) {
+        for probe in probes.iter().filter(|p| p.index == index) {
             let done = measured
                 .iter()
                 .find(|m| m.index == index && m.choice == probe.choice);
@@ -595,10 +593,8 @@ pub fn decide(
                     score(&pt, &mut t);
                     t
                 }
-                None => {
-                    debug_assert!(skipped.contains(&k));
-                    Trial::not_measured(probe.choice, probe.cost_per_sample())
-                }
+                // Skipped above: it could not win.
+                None => Trial::not_measured(probe.choice, probe.cost_per_sample()),
             });
         }
         let choice = choose(&trials, opts);
