@@ -9,9 +9,7 @@
 //! see [`PilotOptions::min_p`]) of each estimator (the others off); a
 //! candidate whose first sample per pixel shows it too costly to tie the
 //! best one measured so far is not rendered further
-//! ([`PilotOptions::hopeless_sigmas`]), and an estimator whose best
-//! configuration lands near the threshold gets a second pair of halves, PT
-//! with it ([`PilotOptions::recheck`]).
+//! ([`PilotOptions::hopeless_sigmas`]).
 //! For each configuration it measures
 //! - the error per sample: each pixel's variance from the two halves,
 //!   `(a - b)^2 / 4`, relative to the mean of all the pilot's renders as
@@ -134,16 +132,6 @@ pub struct PilotOptions {
     /// and 2 cost 0.72x and 0.96x of PT's per sample where P = 0 is 4x
     /// more efficient: their halves were 40% of the pilot.
     pub hopeless_sigmas: f64,
-    /// An estimator whose best configuration's efficiency lies in this
-    /// range (PT's = 1) gets a second pair of pilot halves, and PT with
-    /// it, for the best configuration and the cheapest within the tie:
-    /// the decision there rests on a variance ratio the first pair pins
-    /// down to +-30% on glass. (1.0, 1.3): on cornell-glass at 64 spp the
-    /// first pair put P = 1, which wins 1.2x-1.3x, at 1.02x-1.42x; the
-    /// losing estimators of the benchmark scenes measure 0.6x-1.07x, most
-    /// of them below 1, so they are rarely rechecked and the pilot stays
-    /// small where auto is off.
-    pub recheck: (f64, f64),
 }
 
 impl Default for PilotOptions {
@@ -161,7 +149,6 @@ impl Default for PilotOptions {
             variance_ratio_prior: 0.35,
             tie: 1.15,
             hopeless_sigmas: 2.5,
-            recheck: (1.0, 1.3),
         }
     }
 }
@@ -197,8 +184,6 @@ pub struct Trial {
     /// Its mean differs from PT's by more than noise and
     /// [`PilotOptions::bias_tolerance`] allow: never chosen.
     pub biased: bool,
-    /// Pairs of pilot halves it was measured with (2 where rechecked).
-    pub pairs: usize,
     /// Not measured beyond its cost, counted on its first sample per
     /// pixel: it could not have tied the best configuration however low
     /// its variance ([`decide`]).
@@ -217,7 +202,6 @@ impl Trial {
             pixel_rel_var: Vec::new(),
             cost,
             efficiency: 0.0,
-            pairs: 0,
             mean: f64::NAN,
             mean_var: f64::INFINITY,
             biased: false,
@@ -279,12 +263,7 @@ pub struct EstimatorDecision {
 
 #[derive(Clone, Debug)]
 pub struct Decision {
-    /// PT's trial over the first pair of pilot halves, against which every
-    /// configuration not rechecked was measured.
     pub pt: Trial,
-    /// PT's trial over both pairs where some configuration was rechecked
-    /// ([`PilotOptions::recheck`]), against which those were measured.
-    pub pt_rechecked: Option<Trial>,
     pub estimators: Vec<EstimatorDecision>,
     /// Camera samples the pilot rendered (all its renders).
     pub samples: u64,
@@ -294,14 +273,6 @@ pub struct Decision {
 }
 
 impl Decision {
-    /// PT's trial that `t` was measured against (over as many pairs).
-    pub fn pt_for(&self, t: &Trial) -> &Trial {
-        match &self.pt_rechecked {
-            Some(pt) if t.pairs > 1 => pt,
-            _ => &self.pt,
-        }
-    }
-
     /// One line per estimator, e.g. "estimator 0: P = 1, 1.31x PT's efficiency".
     pub fn describe(&self, names: &[String]) -> Vec<String> {
         self.estimators
@@ -322,14 +293,14 @@ impl Decision {
                             format!(
                                 "{} not measured (work {:.2}x: cannot win)",
                                 label(t.choice),
-                                t.cost / self.pt_for(t).cost
+                                t.cost / self.pt.cost
                             )
                         } else {
                             format!(
                                 "{} {:.2}x ({})",
                                 label(t.choice),
                                 t.efficiency,
-                                t.against(self.pt_for(t))
+                                t.against(&self.pt)
                             )
                         }
                     })
@@ -409,21 +380,14 @@ impl Probe {
     }
 }
 
-/// A configuration measured with pairs of pilot halves (one pair, two
-/// where its decision was uncertain: [`PilotOptions::recheck`]).
+/// A candidate measured with both pilot halves.
 struct Measured {
     index: usize,
     choice: Choice,
-    pairs: Vec<(Image, Image)>,
-    /// Counted work ([`work_cost`]) and camera samples of all its renders.
-    work: f64,
-    samples: u64,
-}
-
-impl Measured {
-    fn cost(&self) -> f64 {
-        self.work / self.samples.max(1) as f64
-    }
+    a: Image,
+    b: Image,
+    /// Counted work per sample over both halves.
+    cost: f64,
 }
 
 /// Runs the pilot on `rs` (its camera is swapped for the pilot's and put
@@ -482,16 +446,8 @@ pub fn decide(
     // PT's two halves.
     let (fa, ca, na) = run(rs, seeds[0], whole.clone());
     let (fb, cb, nb) = run(rs, seeds[1], whole.clone());
-    let mut pt_measured = Measured {
-        index: usize::MAX,
-        choice: Choice {
-            min_bounces: 0,
-            entry_nee: EntryNee::Off,
-        },
-        pairs: vec![(image(&fa), image(&fb))],
-        work: ca + cb,
-        samples: na + nb,
-    };
+    let (pa, pb) = (image(&fa), image(&fb));
+    let pt_cost = (ca + cb) / (na + nb).max(1) as f64;
     // Every candidate's first sample per pixel: its cost per sample is then
     // counted, at a fraction of a half (a quarter of the 4-spp pilot), and
     // the sample is the start of its first half if it goes on.
@@ -523,7 +479,7 @@ pub fn decide(
     // at a third of PT's pilot cost.) While candidates are still being
     // measured, the mean of those rendered so far serves.
     let normalization = |renders: &[&Image]| {
-        let mut mean = vec![[0.0f32; 3]; (width * height) as usize];
+        let mut mean = vec![[0.0f32; 3]; pa.pixels.len()];
         for img in renders {
             for (m, p) in mean.iter_mut().zip(&img.pixels) {
                 for c in 0..3 {
@@ -537,30 +493,15 @@ pub fn decide(
         }
         blur(&mean, width as usize, 2)
     };
-    // Every render of PT's and of the measured candidates'.
-    fn renders<'a>(pt: &'a Measured, measured: &'a [Measured]) -> Vec<&'a Image> {
-        std::iter::once(pt)
-            .chain(measured)
-            .flat_map(|m| m.pairs.iter().flat_map(|(a, b)| [a, b]))
+    // PT's halves and every measured candidate's.
+    fn renders<'a>(pt: [&'a Image; 2], measured: &'a [Measured]) -> Vec<&'a Image> {
+        pt.into_iter()
+            .chain(measured.iter().flat_map(|m| [&m.a, &m.b]))
             .collect()
     }
-    // A configuration's trial from its pairs of halves: each pair's
-    // estimates (per pixel variance, image mean) averaged over the pairs.
-    let trial = |norm: &[[f32; 3]], choice: Option<Choice>, pairs: &[(Image, Image)], cost: f64| {
-        let k = pairs.len().max(1) as f64;
-        let mut pixel_rel_var = vec![0.0f64; norm.len()];
-        let (mut mean, mut mean_var) = (0.0, 0.0);
-        for (a, b) in pairs {
-            for (v, p) in pixel_rel_var
-                .iter_mut()
-                .zip(self::pixel_rel_var(a, b, norm))
-            {
-                *v += p / k;
-            }
-            let (pm, pv) = mean_and_variance(a, b);
-            mean += pm / k;
-            mean_var += pv / (k * k);
-        }
+    let trial = |norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: f64| {
+        let (mean, mean_var) = mean_and_variance(a, b);
+        let pixel_rel_var = pixel_rel_var(a, b, norm);
         let (rel_var, rel_var_se) = mean_and_standard_error(&pixel_rel_var);
         Trial {
             choice,
@@ -569,7 +510,6 @@ pub fn decide(
             pixel_rel_var,
             cost,
             efficiency: 1.0,
-            pairs: pairs.len(),
             mean,
             mean_var,
             biased: false,
@@ -605,9 +545,7 @@ pub fn decide(
         let mut best = 0.0f64;
         for k in mine {
             let probe = &probes[k];
-            if best > 0.0
-                && pt_measured.cost() / probe.cost_per_sample() * optimism * opts.tie < best
-            {
+            if best > 0.0 && pt_cost / probe.cost_per_sample() * optimism * opts.tie < best {
                 continue;
             }
             configure(&mut ests, index, probe.choice);
@@ -618,17 +556,18 @@ pub fn decide(
             for (f, p) in first.iter_mut().zip(&probe.film) {
                 f.merge(p);
             }
+            let cost = (probe.cost + c1 + c2) / (probe.samples + n1 + n2).max(1) as f64;
             let m = Measured {
                 index,
                 choice: probe.choice,
-                pairs: vec![(image(&first), image(&second))],
-                work: probe.cost + c1 + c2,
-                samples: probe.samples + n1 + n2,
+                a: image(&first),
+                b: image(&second),
+                cost,
             };
-            let so_far = renders(&pt_measured, &measured);
-            let norm = normalization(&[so_far, renders(&m, &[])].concat());
-            let pt = trial(&norm, None, &pt_measured.pairs[..1], pt_measured.cost());
-            let mut t = trial(&norm, Some(m.choice), &m.pairs, m.cost());
+            let so_far = renders([&pa, &pb], &measured);
+            let norm = normalization(&[so_far, vec![&m.a, &m.b]].concat());
+            let pt = trial(&norm, None, &pa, &pb, pt_cost);
+            let mut t = trial(&norm, Some(m.choice), &m.a, &m.b, m.cost);
             score(&pt, &mut t);
             if t.efficiency.is_finite() {
                 best = best.max(t.efficiency);
@@ -637,78 +576,9 @@ pub fn decide(
         }
     }
 
-    // Trials of every measured candidate against PT's, against the
-    // normalization of every render.
-    // Each against PT's trial over the same pairs of seeds (the standard
-    // error is paired pixel by pixel, and a configuration not rechecked
-    // must not see PT's estimate move under it).
-    let scored = |pt_measured: &Measured, measured: &[Measured]| {
-        let norm = normalization(&renders(pt_measured, measured));
-        let pt_over = |pairs: usize| {
-            let pairs = pairs.clamp(1, pt_measured.pairs.len());
-            trial(&norm, None, &pt_measured.pairs[..pairs], pt_measured.cost())
-        };
-        let trials: Vec<Trial> = measured
-            .iter()
-            .map(|m| {
-                let mut t = trial(&norm, Some(m.choice), &m.pairs, m.cost());
-                score(&pt_over(m.pairs.len()), &mut t);
-                t
-            })
-            .collect();
-        let rechecked = (pt_measured.pairs.len() > 1).then(|| pt_over(pt_measured.pairs.len()));
-        (pt_over(1), rechecked, trials)
-    };
-    // An estimator whose best configuration lands near the threshold gets
-    // a second pair of halves, PT's too, for the configurations it might
-    // choose (see PilotOptions::recheck).
-    let (_, _, first_trials) = scored(&pt_measured, &measured);
-    let mut recheck: Vec<usize> = Vec::new();
-    for index in 0..ests.list.len() {
-        let mine: Vec<usize> = (0..measured.len())
-            .filter(|&k| measured[k].index == index)
-            .collect();
-        let trials: Vec<Trial> = mine.iter().map(|&k| first_trials[k].clone()).collect();
-        let best = trials
-            .iter()
-            .map(|t| t.efficiency)
-            .filter(|e| e.is_finite())
-            .fold(0.0f64, f64::max);
-        if best >= opts.recheck.0 && best <= opts.recheck.1 {
-            // The best, and the cheapest within the tie ([`choose`]'s pick).
-            let cheapest = trials
-                .iter()
-                .filter(|t| t.efficiency.is_finite() && t.efficiency * opts.tie >= best)
-                .min_by(|a, b| a.cost.total_cmp(&b.cost))
-                .and_then(|t| t.choice);
-            for (&k, t) in mine.iter().zip(&trials) {
-                if t.efficiency == best || t.choice == cheapest {
-                    recheck.push(k);
-                }
-            }
-        }
-    }
-    if !recheck.is_empty() {
-        let more = [3u64, 4].map(|k| mix64(mix64(opts.seed) ^ (0xA070_0000_0000_0000 | k)));
-        let mut pair = |rs: &RenderScene, m: &mut Measured| {
-            let (fa, ca, na) = run(rs, more[0], whole.clone());
-            let (fb, cb, nb) = run(rs, more[1], whole.clone());
-            m.pairs.push((image(&fa), image(&fb)));
-            m.work += ca + cb;
-            m.samples += na + nb;
-        };
-        pair(rs, &mut pt_measured);
-        for &k in &recheck {
-            let (index, choice) = (measured[k].index, measured[k].choice);
-            configure(&mut ests, index, choice);
-            rs.estimators = Some(ests);
-            pair(rs, &mut measured[k]);
-            ests = rs.estimators.take().expect("put there above");
-        }
-    }
-
-    // The final measurements.
-    let (pt, pt_rechecked, final_trials) = scored(&pt_measured, &measured);
+    // The final measurements, against the normalization of every render.
+    let norm = normalization(&renders([&pa, &pb], &measured));
+    let pt = trial(&norm, None, &pa, &pb, pt_cost);
     let mut decisions = Vec::new();
     for index in 0..ests.list.len() {
         // In candidate order (P ascending), as printed.
@@ -716,9 +586,13 @@ pub fn decide(
         for probe in probes.iter().filter(|p| p.index == index) {
             let done = measured
                 .iter()
-                .position(|m| m.index == index && m.choice == probe.choice);
+                .find(|m| m.index == index && m.choice == probe.choice);
             trials.push(match done {
-                Some(k) => final_trials[k].clone(),
+                Some(m) => {
+                    let mut t = trial(&norm, Some(m.choice), &m.a, &m.b, m.cost);
+                    score(&pt, &mut t);
+                    t
+                }
                 // Skipped above: it could not win.
                 None => Trial::not_measured(probe.choice, probe.cost_per_sample()),
             });
@@ -738,7 +612,6 @@ pub fn decide(
     }
     let decision = Decision {
         pt,
-        pt_rechecked,
         estimators: decisions,
         samples,
         width,
@@ -917,7 +790,6 @@ mod tests {
             mean_var: 0.0,
             biased: false,
             skipped: false,
-            pairs: 1,
         }
     }
 

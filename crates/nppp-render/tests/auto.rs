@@ -3,14 +3,12 @@
 //! it turns off an estimator that loses to path tracing (the default scene's
 //! diffuse knot, 0.3x-0.7x at equal error, BENCHMARKS.md), and it rejects
 //! a configuration whose image mean is wrong however little noise it has
-//! (the tube's estimator at P = 0 renders the tube's inside black), it
-//! skips candidates that cannot win, and a recheck compares a configuration
-//! with PT over the same seeds.
+//! (the tube's estimator at P = 0 renders the tube's inside black).
 
 mod common;
 use common::*;
 use nppp_render::RenderScene;
-use nppp_render::auto::{Decision, EstimatorDecision, PilotOptions, Trial, decide, efficiency};
+use nppp_render::auto::{Decision, EstimatorDecision, PilotOptions, Trial, decide};
 use nppp_render::estimator::{EstimatorMode, Estimators};
 
 /// The scene `name` of data/scenes, `width` pixels wide (0: as it is).
@@ -144,50 +142,4 @@ fn a_configuration_that_cannot_win_is_not_measured_twice() {
     let pixels = (d.width * d.height) as u64;
     let per_half = pixels * opts.spp as u64;
     assert!(d.samples <= 6 * per_half + pixels, "{} samples", d.samples);
-}
-
-#[test]
-fn an_uncertain_decision_is_measured_again_against_pt_over_the_same_seeds() {
-    let scene = load("cornell-glass.json", 64);
-    let opts = |recheck: (f64, f64)| PilotOptions {
-        max_bounces: scene.render.max_bounces,
-        seed: 2,
-        recheck,
-        ..Default::default()
-    };
-    // Nothing is uncertain: one pair of halves each.
-    let once = decision(&scene, &opts((f64::INFINITY, f64::INFINITY)));
-    assert!(once.pt_rechecked.is_none());
-    assert!(once.estimators[0].trials.iter().all(|t| t.pairs == 1));
-    // Everything is: PT and the best configuration get a second pair.
-    let twice = decision(&scene, &opts((0.0, f64::INFINITY)));
-    let pt2 = twice.pt_rechecked.as_ref().expect("PT rechecked");
-    assert_eq!(pt2.pairs, 2);
-    assert_eq!(twice.pt.pairs, 1);
-    // The best configuration of the first pair (the one the recheck is
-    // for; after it another may lead).
-    let glass = &twice.estimators[0];
-    let first_best = once.estimators[0]
-        .trials
-        .iter()
-        .max_by(|a, b| a.efficiency.total_cmp(&b.efficiency))
-        .and_then(|t| t.choice)
-        .unwrap();
-    let rechecked = glass
-        .trials
-        .iter()
-        .find(|t| t.choice == Some(first_best))
-        .unwrap();
-    assert_eq!(rechecked.pairs, 2);
-    assert!(twice.samples > once.samples);
-    // Each configuration is scored against PT over the same pairs of seeds
-    // (paired pixel by pixel), and says so when it prints.
-    let tau = PilotOptions::default().variance_ratio_prior;
-    for t in &glass.trials {
-        let pt = if t.pairs == 2 { pt2 } else { &twice.pt };
-        assert!(std::ptr::eq(twice.pt_for(t), pt));
-        if !t.biased {
-            assert_eq!(t.efficiency, efficiency(pt, t, tau), "P = {:?}", t.choice);
-        }
-    }
 }
