@@ -34,11 +34,10 @@
 //! [`PilotOptions::tie`] of the best the cheapest wins ([`choose`]).
 //! Candidates are decided one estimator at a time, not by trying every
 //! combination. The pilot is 2-3% of a 64-spp render where PT is the
-//! cost, about 9% on cornell-jade, where the estimator is 4x cheaper than
-//! PT.
+//! cost, 6-8% on cornell-jade, where the estimator is 4x cheaper than PT.
 
 use crate::estimator::{EntryNee, Estimators};
-use crate::film::PixelSum;
+use crate::film::{PixelSum, film_image};
 use crate::image_io::Image;
 use crate::integrator::WorkCounts;
 use crate::render::{RenderOptions, render_film};
@@ -424,11 +423,7 @@ pub fn decide(
         samples += st.samples;
         (film, work_cost(&st.work, st.estimators.entries), st.samples)
     };
-    let image = |film: &[PixelSum]| Image {
-        width,
-        height,
-        pixels: film.iter().map(PixelSum::mean).collect(),
-    };
+    let image = |film: &[PixelSum]| film_image(width, height, film);
     // Hashed, so that the pilots of different render seeds share no
     // stream (XOR with small constants mapped seed 0's pilots onto seed 3's).
     let seeds = [1u64, 2].map(|k| mix64(mix64(opts.seed) ^ (0xA070_0000_0000_0000 | k)));

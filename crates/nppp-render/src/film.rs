@@ -120,6 +120,16 @@ pub struct PixelSum {
     pub dropped: u32,
 }
 
+/// The image of a row-major film `width` pixels wide: every pixel's mean,
+/// as [`crate::render`] computes it.
+pub fn film_image(width: u32, height: u32, film: &[PixelSum]) -> crate::Image {
+    let mut img = crate::Image::new(width, height);
+    for (o, p) in img.pixels.iter_mut().zip(film) {
+        *o = p.mean();
+    }
+    img
+}
+
 impl PixelSum {
     #[inline]
     pub fn add(&mut self, l: Vec3) {

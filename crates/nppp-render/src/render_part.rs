@@ -326,11 +326,7 @@ pub struct MergedRender {
 impl MergedRender {
     /// The image: every pixel's mean, as [`crate::render`] computes it.
     pub fn image(&self) -> crate::Image {
-        let mut img = crate::Image::new(self.header.width, self.header.height);
-        for (o, p) in img.pixels.iter_mut().zip(&self.film) {
-            *o = p.mean();
-        }
-        img
+        crate::film::film_image(self.header.width, self.header.height, &self.film)
     }
 
     pub fn dropped_samples(&self) -> u64 {
