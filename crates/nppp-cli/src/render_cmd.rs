@@ -166,6 +166,25 @@ fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
     Ok(())
 }
 
+/// The decoders that answer the neural estimators' batches ("cpu",
+/// "burn-wgpu", ...), or "none" when no estimator in use decodes.
+fn decoder_names(ests: &Estimators) -> String {
+    let mut names: Vec<&str> = ests
+        .list
+        .iter()
+        .filter_map(|e| match &e.model {
+            EstimatorModel::Neural { sampler } => Some(sampler.decoder_name()),
+            _ => None,
+        })
+        .collect();
+    names.dedup();
+    if names.is_empty() {
+        "none".into()
+    } else {
+        names.join(", ")
+    }
+}
+
 /// Per estimator of `ests`: "mesh/material" of the first instance using it.
 fn estimator_names(scene: &nppp_scene::Scene, ests: &Estimators) -> Vec<String> {
     (0..ests.list.len())
@@ -507,13 +526,16 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(e) = &rs.estimators {
         let st = &stats.estimators;
         eprintln!(
-            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped",
+            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {} decoder batches of {:.0} entries on average ({}), {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped",
             a.estimators,
             e.min_bounces,
             st.entries,
             st.mask_skips,
             st.ambiguous,
             st.over_max_bounces,
+            st.decoder_batches,
+            st.entries as f64 / st.decoder_batches.max(1) as f64,
+            decoder_names(e),
             st.decoder_fallbacks,
             nppp_files::format_bytes(e.memory_bytes() as u64),
             st.repairs.degenerate,

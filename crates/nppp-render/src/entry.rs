@@ -82,6 +82,7 @@ impl EntryBatch {
                         &mut stats.repairs,
                     );
                     stats.decoder_fallbacks += u64::from(decoded.fell_back);
+                    stats.decoder_batches += 1;
                     for (&i, exit) in rows.iter().zip(decoded.exits) {
                         self.exits[i] = *exit;
                     }

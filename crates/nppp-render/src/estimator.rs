@@ -238,6 +238,10 @@ pub struct EstimatorStats {
     pub over_max_bounces: u64,
     /// Batches the configured decoder failed on (answered by the CPU decoder).
     pub decoder_fallbacks: u64,
+    /// Decoder calls (one per neural estimator per wavefront step with
+    /// entries): `entries / decoder_batches` is the batch size a decoder
+    /// backend sees in this render.
+    pub decoder_batches: u64,
 }
 
 impl EstimatorStats {
@@ -247,6 +251,7 @@ impl EstimatorStats {
         self.ambiguous += o.ambiguous;
         self.over_max_bounces += o.over_max_bounces;
         self.decoder_fallbacks += o.decoder_fallbacks;
+        self.decoder_batches += o.decoder_batches;
         self.repairs.degenerate += o.repairs.degenerate;
         self.repairs.inward += o.repairs.inward;
         self.repairs.clamped += o.repairs.clamped;
