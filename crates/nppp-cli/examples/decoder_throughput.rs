@@ -41,12 +41,16 @@ fn parse_args() -> Result<Args> {
     while let Some(a) = it.next() {
         match a.as_str() {
             "--backends" => {
-                let v = it.next().context("--backends needs a list, e.g. cpu,flex,wgpu")?;
+                let v = it
+                    .next()
+                    .context("--backends needs a list, e.g. cpu,flex,wgpu")?;
                 backends = v.split(',').map(str::to_string).collect();
             }
             "--threads" => {
                 let v = it.next().context("--threads needs a number")?;
-                threads = v.parse().with_context(|| format!("--threads {v}: not a number"))?;
+                threads = v
+                    .parse()
+                    .with_context(|| format!("--threads {v}: not a number"))?;
                 if threads == 0 {
                     bail!("--threads 0: at least one");
                 }
@@ -56,7 +60,9 @@ fn parse_args() -> Result<Args> {
         }
     }
     Ok(Args {
-        file: file.context("usage: decoder_throughput FILE.nppp [--backends cpu,flex,ndarray,wgpu] [--threads N]")?,
+        file: file.context(
+            "usage: decoder_throughput FILE.nppp [--backends cpu,flex,ndarray,wgpu] [--threads N]",
+        )?,
         backends,
         threads,
     })
@@ -64,12 +70,20 @@ fn parse_args() -> Result<Args> {
 
 /// Rows per second of `decoder` on batches of `rows`, each of `threads`
 /// threads running its own batches at the same time.
-fn rows_per_second(decoder: &dyn ExitDecoder, inputs: usize, outputs: usize, rows: usize, threads: usize) -> Result<f64> {
+fn rows_per_second(
+    decoder: &dyn ExitDecoder,
+    inputs: usize,
+    outputs: usize,
+    rows: usize,
+    threads: usize,
+) -> Result<f64> {
     let mut rng = SampleRng::from_seed(7);
     let input: Vec<f32> = (0..rows * inputs).map(|_| rng.normal()).collect();
     // One call first: a GPU backend compiles its kernels and allocates here.
     let mut warm = vec![0.0f32; rows * outputs];
-    decoder.decode(&input, rows, &mut warm).map_err(anyhow::Error::msg)?;
+    decoder
+        .decode(&input, rows, &mut warm)
+        .map_err(anyhow::Error::msg)?;
     let start = Instant::now();
     let done: Result<Vec<usize>> = std::thread::scope(|s| {
         let handles: Vec<_> = (0..threads)
@@ -79,26 +93,44 @@ fn rows_per_second(decoder: &dyn ExitDecoder, inputs: usize, outputs: usize, row
                     let mut out = vec![0.0f32; rows * outputs];
                     let mut n = 0usize;
                     while start.elapsed() < MIN_TIME {
-                        decoder.decode(input, rows, &mut out).map_err(anyhow::Error::msg)?;
+                        decoder
+                            .decode(input, rows, &mut out)
+                            .map_err(anyhow::Error::msg)?;
                         n += rows;
                     }
                     Ok(n)
                 })
             })
             .collect();
-        handles.into_iter().map(|h| h.join().expect("decoder thread panicked")).collect()
+        handles
+            .into_iter()
+            .map(|h| h.join().expect("decoder thread panicked"))
+            .collect()
     });
     let total: usize = done?.iter().sum();
     Ok(total as f64 / start.elapsed().as_secs_f64())
 }
 
 fn main() -> Result<()> {
+    // As `nppp render` does: the matrix products run on the calling thread.
+    // Burn's ndarray backend turns on matrixmultiply's own threads, which
+    // would run large batches on every core and make "one thread" mean all.
+    if std::env::var_os("MATMUL_NUM_THREADS").is_none() {
+        // SAFETY: first thing in `main`, before any thread exists.
+        unsafe { std::env::set_var("MATMUL_NUM_THREADS", "1") };
+    }
     let args = parse_args()?;
-    let baked = BakedEstimator::load(std::path::Path::new(&args.file)).with_context(|| args.file.clone())?;
+    let baked = BakedEstimator::load(std::path::Path::new(&args.file))
+        .with_context(|| args.file.clone())?;
     let mlp = &baked.decoder;
     let (inputs, outputs) = (mlp.inputs(), mlp.outputs());
     let widths: Vec<String> = mlp.layers.iter().map(|l| l.outputs.to_string()).collect();
-    println!("{}: decoder {inputs} -> {} ({} layers)", args.file, widths.join(" -> "), mlp.layers.len());
+    println!(
+        "{}: decoder {inputs} -> {} ({} layers)",
+        args.file,
+        widths.join(" -> "),
+        mlp.layers.len()
+    );
     let mut decoders: Vec<(String, Box<dyn ExitDecoder>)> = Vec::new();
     for b in &args.backends {
         let d: Box<dyn ExitDecoder> = match b.as_str() {
