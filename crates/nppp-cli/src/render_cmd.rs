@@ -166,9 +166,13 @@ fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
     Ok(())
 }
 
-/// The decoders that answer the neural estimators' batches ("cpu",
-/// "burn-wgpu", ...), or "none" when no estimator in use decodes.
-fn decoder_names(ests: &Estimators) -> String {
+/// "N decoder batches of K entries on average (cpu)": how the render's
+/// entries reached the decoder (a GPU decoder pays only on large batches,
+/// BENCHMARKS.md), and which decoder answered them.
+fn decoder_batches(st: &nppp_render::estimator::EstimatorStats, ests: &Estimators) -> String {
+    if st.decoder_batches == 0 {
+        return "no decoder batches".into();
+    }
     let mut names: Vec<&str> = ests
         .list
         .iter()
@@ -178,11 +182,12 @@ fn decoder_names(ests: &Estimators) -> String {
         })
         .collect();
     names.dedup();
-    if names.is_empty() {
-        "none".into()
-    } else {
+    format!(
+        "{} decoder batches of {:.0} entries on average ({})",
+        st.decoder_batches,
+        st.entries as f64 / st.decoder_batches as f64,
         names.join(", ")
-    }
+    )
 }
 
 /// Per estimator of `ests`: "mesh/material" of the first instance using it.
@@ -526,16 +531,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(e) = &rs.estimators {
         let st = &stats.estimators;
         eprintln!(
-            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {} decoder batches of {:.0} entries on average ({}), {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped",
+            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {}, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped",
             a.estimators,
             e.min_bounces,
             st.entries,
             st.mask_skips,
             st.ambiguous,
             st.over_max_bounces,
-            st.decoder_batches,
-            st.entries as f64 / st.decoder_batches.max(1) as f64,
-            decoder_names(e),
+            decoder_batches(st, e),
             st.decoder_fallbacks,
             nppp_files::format_bytes(e.memory_bytes() as u64),
             st.repairs.degenerate,

@@ -42,6 +42,16 @@ fn every_entry_ends_its_path() {
     assert!(fs.estimators.entries < ns.estimators.entries);
     assert_eq!(fs.estimators.over_max_bounces, 0);
     assert_eq!(fs.estimators.repairs.clamped, 0);
+    // The network answers its entries in batches (what a decoder backend
+    // sees per call, reported by `nppp render`); the floor never decodes.
+    assert_eq!(fs.estimators.decoder_batches, 0);
+    assert!(ns.estimators.decoder_batches > 0);
+    assert!(
+        ns.estimators.decoder_batches * 4 <= ns.estimators.entries,
+        "{} batches for {} entries: not batched",
+        ns.estimators.decoder_batches,
+        ns.estimators.entries
+    );
     // Every camera ray that enters the knot's sphere and hits its mask ends
     // there, black: the knot's pixels. The neural render lights most of them
     // (a few stay black at 8 spp: no NEE happens at the skipped vertices).
