@@ -114,12 +114,8 @@ fn rows_per_second(
 
 fn main() -> Result<()> {
     // As `nppp render` does: the matrix products run on the calling thread.
-    // Burn's ndarray backend turns on matrixmultiply's own threads, which
-    // would run large batches on every core and make "one thread" mean all.
-    if std::env::var_os("MATMUL_NUM_THREADS").is_none() {
-        // SAFETY: first thing in `main`, before any thread exists.
-        unsafe { std::env::set_var("MATMUL_NUM_THREADS", "1") };
-    }
+    // SAFETY: first thing in `main`, before any thread exists.
+    unsafe { nppp_nn::backend::single_threaded_gemm() };
     let args = parse_args()?;
     let baked = BakedEstimator::load(std::path::Path::new(&args.file))
         .with_context(|| args.file.clone())?;

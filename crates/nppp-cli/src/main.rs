@@ -87,26 +87,13 @@ enum Command {
 fn main() {
     let cli = Cli::parse();
     if matches!(cli.command, Command::Render { .. } | Command::Bench { .. }) {
-        single_threaded_gemm();
+        // SAFETY: first thing in `main` after parsing the flags, before any
+        // thread exists. Training and baking are left as they were.
+        unsafe { nppp_nn::backend::single_threaded_gemm() };
     }
     if let Err(e) = run(cli) {
         eprintln!("error: {e:#}");
         std::process::exit(1);
-    }
-}
-
-/// The renderer already runs one wavefront per core, and each wavefront's
-/// decoder batch is a `matrixmultiply` product. Burn's ndarray backend turns
-/// on that crate's own threading, which would split every batch over extra
-/// threads that spin (`sched_yield`) on the cores the renderer is using:
-/// 13% of a P = 0 room-skylight render went to yielding, and samples/s rose
-/// 1.2x without it (measured on 2 cores). A user's own `MATMUL_NUM_THREADS`
-/// is kept. Training and baking are left as they were.
-fn single_threaded_gemm() {
-    if std::env::var_os("MATMUL_NUM_THREADS").is_none() {
-        // SAFETY: called first thing in `main`, before any thread exists, so
-        // nothing can read the environment concurrently.
-        unsafe { std::env::set_var("MATMUL_NUM_THREADS", "1") };
     }
 }
 

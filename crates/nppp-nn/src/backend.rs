@@ -65,3 +65,25 @@ fn wgpu_device() -> Result<Device> {
          `--features nppp-nn/wgpu` or choose another backend (nppp render: --decoder burn-flex|burn-ndarray|cpu; nppp train/bake: --backend flex|ndarray)"
     )
 }
+
+/// Keeps `matrixmultiply`'s products on the calling thread (sets
+/// `MATMUL_NUM_THREADS=1` unless the user set it). The renderer already
+/// runs one wavefront per core, and each wavefront's decoder batch is a
+/// `matrixmultiply` product; Burn's ndarray backend turns on that crate's
+/// own threading, which would split every batch over extra threads that
+/// spin (`sched_yield`) on the cores the renderer is using: 13% of a P = 0
+/// room-skylight render went to yielding, and samples/s rose 1.2x without
+/// it (measured on 2 cores). `nppp render` and `nppp bench` call it, and so
+/// does the decoder throughput example, whose "one thread" would otherwise
+/// mean every core on large batches.
+///
+/// # Safety
+/// It writes the process environment: call it before any other thread
+/// exists (first thing in `main`), so that nothing reads the environment
+/// concurrently.
+pub unsafe fn single_threaded_gemm() {
+    if std::env::var_os("MATMUL_NUM_THREADS").is_none() {
+        // SAFETY: the caller guarantees that no other thread exists.
+        unsafe { std::env::set_var("MATMUL_NUM_THREADS", "1") };
+    }
+}
