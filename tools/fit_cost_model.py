@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Fits the `auto` pilot's cost model (crates/nppp-render/src/auto.rs) to timed
-renders: render time = a x the camera rays' BVH node visits + b x every other
-node visit + c x shadow rays + d x estimator entries, by least squares on
+renders: render time = a x the camera rays' BVH node visits + b x the other rays'
+inner node visits + c x their leaf visits + d x shadow rays + e x estimator entries, by least squares on
 relative error (every
 render counts the same, whatever its length). Renders every scene of
 data/scenes as plain PT and with its estimators at P = 0, 1, 2 (with and
@@ -25,10 +25,11 @@ from pathlib import Path
 from nppp_log import TIME, render_log
 
 TRACED = re.compile(r"traced: ([0-9.]+) M rays, ([0-9.]+) M shadow rays, ([0-9.]+) M BVH node visits "
-                    r"\(([0-9.]+) M by camera rays\)")
+                    r"\(([0-9.]+) M by camera rays, ([0-9.]+) M leaves by later rays\)")
 # What each render counted, in this order.
-TERMS = ["camera node visit", "deep node visit", "closest-hit ray", "shadow ray", "estimator entry"]
-FITTED = ["camera node visit", "deep node visit", "shadow ray", "estimator entry"]
+TERMS = ["camera node visit", "deep node visit", "deep leaf visit", "closest-hit ray", "shadow ray",
+         "estimator entry"]
+FITTED = ["camera node visit", "deep node visit", "deep leaf visit", "shadow ray", "estimator entry"]
 ENTRIES = re.compile(r"estimators \([A-Za-z]+, P = \d+\): (\d+) entries")
 
 # scene, common flags, whether its estimator's surface takes a light sample
@@ -58,9 +59,11 @@ def render(nppp, scene, spp, seed, flags, out):
            "--out", out, "--quiet"] + flags
     log, (t, w) = render_log(cmd, TIME, TRACED)
     e = ENTRIES.search(log)
-    rays, shadow, nodes, camera = (float(x) * 1e6 for x in w.groups())
-    # Camera rays' node visits apart from the rest: coherent, cheaper.
-    return float(t.group(1)), [camera, nodes - camera, rays, shadow, float(e.group(1)) if e else 0.0]
+    rays, shadow, nodes, camera, leaves = (float(x) * 1e6 for x in w.groups())
+    # Camera rays' node visits apart from the rest: coherent, cheaper. The
+    # later rays' visits split into inner nodes and leaves.
+    return float(t.group(1)), [camera, nodes - camera - leaves, leaves, rays, shadow,
+                               float(e.group(1)) if e else 0.0]
 
 
 def solve(a, b):

@@ -550,11 +550,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         }
     }
     eprintln!(
-        "traced: {:.3} M rays, {:.3} M shadow rays, {:.3} M BVH node visits ({:.3} M by camera rays)",
+        "traced: {:.3} M rays, {:.3} M shadow rays, {:.3} M BVH node visits ({:.3} M by camera rays, {:.3} M leaves by later rays)",
         stats.work.rays as f64 / 1e6,
         stats.work.shadow_rays as f64 / 1e6,
         stats.work.node_visits as f64 / 1e6,
-        stats.work.camera_node_visits as f64 / 1e6
+        stats.work.camera_node_visits as f64 / 1e6,
+        stats.work.leaf_visits as f64 / 1e6
     );
     eprintln!(
         "{}: {}x{} spp {} M {} in {:.2}s (scene build {:.2}s), {:.3} M samples/s, mean rgb [{:.4} {:.4} {:.4}]{}",

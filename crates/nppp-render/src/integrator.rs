@@ -61,6 +61,10 @@ pub struct WorkCounts {
     /// visit than a deep path's (the `auto` pilot's cost model weighs them
     /// apart).
     pub camera_node_visits: u64,
+    /// The leaves (triangle packets, TLAS leaves) among `node_visits` not
+    /// spent on camera rays: the `auto` pilot's cost model weighs them
+    /// apart from inner nodes.
+    pub leaf_visits: u64,
 }
 
 impl WorkCounts {
@@ -69,6 +73,7 @@ impl WorkCounts {
         self.shadow_rays += o.shadow_rays;
         self.node_visits += o.node_visits;
         self.camera_node_visits += o.camera_node_visits;
+        self.leaf_visits += o.leaf_visits;
     }
 }
 
@@ -102,11 +107,14 @@ impl Wavefront {
         // Everything below runs on this thread: the visits counted here are
         // this batch's own.
         let visits_before = crate::bvh4::node_visits();
+        let leaves_before = crate::bvh4::leaf_visits();
+        let mut camera_leaves = 0;
         let mut camera_step = true;
         while !self.paths.is_empty() {
             self.intersect(scene, settings);
             if camera_step {
                 self.work.camera_node_visits += crate::bvh4::node_visits() - visits_before;
+                camera_leaves = crate::bvh4::leaf_visits() - leaves_before;
                 camera_step = false;
             }
             self.answer_estimators(scene, settings);
@@ -145,6 +153,7 @@ impl Wavefront {
             self.paths.truncate(w);
         }
         self.work.node_visits += crate::bvh4::node_visits() - visits_before;
+        self.work.leaf_visits += crate::bvh4::leaf_visits() - leaves_before - camera_leaves;
     }
 
     fn intersect(&mut self, scene: &RenderScene, settings: &IntegratorSettings) {

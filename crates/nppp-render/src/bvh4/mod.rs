@@ -461,12 +461,23 @@ thread_local! {
     /// deterministic measure of traversal work (a render's time is not),
     /// read per tile by the renderer. Added to once per traversal.
     static NODE_VISITS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+    /// The leaves among them: a leaf tests up to 8 primitives (a triangle
+    /// packet, or instances whose own trees are then walked), several inner
+    /// nodes' worth of work, and rays inside a thin object (a glass knot's
+    /// internal bounces) enter many leaves per node visited.
+    static LEAF_VISITS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
 }
 
 /// Nodes and leaves this thread's traversals have visited so far (take the
 /// difference around a piece of work).
 pub fn node_visits() -> u64 {
     NODE_VISITS.with(|c| c.get())
+}
+
+/// Leaves this thread's traversals have entered so far (a part of
+/// [`node_visits`]).
+pub fn leaf_visits() -> u64 {
+    LEAF_VISITS.with(|c| c.get())
 }
 
 impl Tree {
@@ -492,7 +503,7 @@ impl Tree {
         mut leaf: impl FnMut(Range<usize>, &mut f32) -> Visit,
     ) {
         let mut tmax = tmax;
-        let mut visits = 0u32;
+        let mut visits = [0u32; 2];
         if self.depth < 64 {
             let stack = &mut InlineStack::new();
             self.walk(
@@ -518,7 +529,8 @@ impl Tree {
                 &mut visits,
             );
         }
-        NODE_VISITS.with(|c| c.set(c.get() + visits as u64));
+        NODE_VISITS.with(|c| c.set(c.get() + visits[0] as u64));
+        LEAF_VISITS.with(|c| c.set(c.get() + visits[1] as u64));
     }
 
     /// Asks the cache for a child the ray entered while the others are
@@ -548,11 +560,11 @@ impl Tree {
         payload: Payload,
         stack: &mut S,
         leaf: &mut F,
-        visits: &mut u32,
+        visits: &mut [u32; 2],
     ) {
         let mut code = self.root;
         loop {
-            *visits += 1;
+            visits[0] += 1;
             if code & LEAF == 0 {
                 let node = &self.nodes[code as usize];
                 let (near, mask) = ray.boxes(node, tmin, *tmax);
@@ -591,6 +603,7 @@ impl Tree {
             } else {
                 let first = (code & FIRST_MASK) as usize;
                 let count = ((code & !LEAF) >> COUNT_SHIFT) as usize + 1;
+                visits[1] += 1;
                 if leaf(first..first + count, tmax) == Visit::Stop {
                     return;
                 }
