@@ -4,21 +4,20 @@
 //! path tracing.
 //!
 //! The pilot renders the scene at a quarter of its resolution, a few
-//! samples per pixel (`nppp render` gives it an eighth of the render's,
-//! 2 to 32, in up to 8 equal groups: [`pilot_groups`]), all with the same
-//! seed, as plain PT and once per candidate P (1 and 2;
+//! samples per pixel (`nppp render` gives it a sixteenth of the render's,
+//! 1 to 16), twice (two seeds), as plain PT and once per candidate P (1 and 2;
 //! see [`PilotOptions::min_p`]) of each estimator (the others off); a
-//! candidate whose first group shows it too costly to tie the
+//! candidate whose first sample per pixel shows it too costly to tie the
 //! best one measured so far is not rendered further
 //! ([`PilotOptions::hopeless_sigmas`]).
 //! For each configuration it measures
-//! - the error per sample: each pixel's variance from the spread of its
-//!   group means, relative to the mean of all the pilot's renders as
+//! - the error per sample: each pixel's variance from the two halves,
+//!   `(a - b)^2 / 4`, relative to the mean of all the pilot's renders as
 //!   relMSE is to its reference (`/ (r^2 + 0.01)`, `r` blurred over 5 x 5
 //!   pixels), averaged over pixels and channels;
-//! - the cost per sample: the work the render counted (inner BVH node
-//!   visits of all but the camera rays, shadow rays, estimator entries)
-//!   weighted by what each costs ([`work_cost`]). Counted work, not the wall clock: the
+//! - the cost per sample: the work the render counted (BVH node visits, the
+//!   camera rays' apart, shadow rays, estimator entries) weighted by what
+//!   each costs ([`work_cost`]). Counted work, not the wall clock: the
 //!   decision, and so the image, is the same at any thread count and on a
 //!   busy machine;
 //! - its image mean against PT's: a configuration whose mean differs by more
@@ -30,8 +29,8 @@
 //! per-pixel variance at 4 spp is heavy-tailed, and one configuration
 //! catching a firefly that another missed moved the raw ratio 10x-100x
 //! between seeds. An estimator is used only if its best configuration
-//! beats PT's efficiency by [`PilotOptions::margin`] (the cost model
-//! predicts time ratios to PT's within 6% RMS, 11% at most), and among its configurations within
+//! beats PT's efficiency by [`PilotOptions::margin`] (the cost model is
+//! within about 10% of measured times), and among its configurations within
 //! [`PilotOptions::tie`] of the best the cheapest wins ([`choose`]).
 //! Candidates are decided one estimator at a time, not by trying every
 //! combination. The pilot is 2-3% of a 64-spp render where PT is the
@@ -46,50 +45,45 @@ use crate::scene_data::RenderScene;
 use crate::surface::SurfaceKind;
 use nppp_geom::rng::mix64;
 
-/// The cost model, in units of one inner BVH node visit of a path's later
-/// rays (incoherent: most of them miss the cache). Fitted by
-/// `tools/fit_cost_model.py` (least squares on relative error) to 88 timed
+/// The cost model, in units of one BVH node visit of a path's later rays
+/// (incoherent: most of them miss the cache). Fitted by
+/// `tools/fit_cost_model.py` (least squares on relative error) to 86 timed
 /// renders of the seven benchmark scenes (PT and NPPP at P = 0..2, with and
 /// without first-vertex NEE, 2 rounds, 24 spp) on the 2-core machine
-/// (BENCHMARKS.md, "auto"): 25.9 ns per later inner node visit, 78 ns per
-/// shadow ray beyond its visits, 678 ns per entry (two threads); time
-/// ratios to PT predicted with an RMS error of 5.7% (largest 11%).
+/// (BENCHMARKS.md, "auto"): 24.4 ns per later node visit, 3.8 ns per camera
+/// ray's node visit, 49 ns per shadow ray beyond its visits, 909 ns per
+/// entry (two threads); time ratios to PT predicted with an RMS error of
+/// 8% (largest 17%). The largest misses under-rate skipping where PT's
+/// skipped bounces are dear (cornell-glass P = 1: 0.97x PT's time
+/// predicted, 0.86x measured; cornell-gold P = 0 without NEE: 1.05x
+/// against 0.90x), so auto errs towards PT there. Closest-hit rays have no
+/// weight of their own: they track node visits too closely for the fit to
+/// tell them apart (their weight came out negative).
 ///
-/// What the fit left out, and why: the camera rays' node visits (coherent,
-/// in cache; fitted at -0.04 and identical in every configuration of a
-/// scene), leaf visits (0.06: a leaf's triangle packets were prefetched
-/// while its parent was tested) and closest-hit rays (they track node
-/// visits too closely to be told apart). Counting leaves with inner nodes,
-/// as the previous model did, rated the internal bounces of a glass knot
-/// cheap: rays inside a thin tube enter a leaf for every second node, so
-/// skipping them was predicted to save little (cornell-glass P = 1: 0.97x
-/// PT's time predicted, 0.87x measured; now 0.86x).
-///
+/// A camera ray's node visit: camera rays of a tile are coherent and find
+/// their nodes in cache.
+pub const COST_PER_CAMERA_NODE_VISIT: f64 = 0.16;
 /// A shadow ray beyond its node visits (the light sample, the BSDF
 /// evaluation, the MIS weights).
-pub const COST_PER_SHADOW_RAY: f64 = 3.0;
+pub const COST_PER_SHADOW_RAY: f64 = 2.0;
 /// One estimator entry (the mask and latent lookups, its row of the batched
 /// decoder, decoding the exit).
-pub const COST_PER_ENTRY: f64 = 26.0;
+pub const COST_PER_ENTRY: f64 = 37.0;
 
-/// Counted work of a render, in later-inner-node-visit equivalents.
+/// Counted work of a render, in later-node-visit equivalents.
 pub fn work_cost(work: &WorkCounts, entries: u64) -> f64 {
-    let later = work.node_visits.saturating_sub(work.camera_node_visits);
-    let inner = later.saturating_sub(work.leaf_visits);
-    inner as f64 + COST_PER_SHADOW_RAY * work.shadow_rays as f64 + COST_PER_ENTRY * entries as f64
+    let camera = work.camera_node_visits.min(work.node_visits);
+    (work.node_visits - camera) as f64
+        + COST_PER_CAMERA_NODE_VISIT * camera as f64
+        + COST_PER_SHADOW_RAY * work.shadow_rays as f64
+        + COST_PER_ENTRY * entries as f64
 }
 
 #[derive(Clone, Copy, Debug)]
 pub struct PilotOptions {
-    /// Resolution factor of the pilot's camera. A quarter: every fourth
-    /// pixel of every fourth row at full resolution (each pixel as the
-    /// render sees it) turned the glass estimators off more often over 24
-    /// seeds (cornell-glass 3 times against never, glass-moved 7 against
-    /// 6), and measured glass-moved's P = 1 variance at 0.9x-1.2x PT's
-    /// where the render has 0.8x.
+    /// Resolution factor of the pilot's camera.
     pub scale: f64,
-    /// Half the samples per pixel each configuration renders (the pilot
-    /// was two halves of this many; now [`pilot_groups`] of them).
+    /// Samples per pixel of each of the two halves.
     pub spp: u32,
     pub max_bounces: u32,
     pub seed: u64,
@@ -128,14 +122,14 @@ pub struct PilotOptions {
     /// Efficiencies within this factor of each other are a tie, which the
     /// cheaper configuration wins (see [`choose`]).
     pub tie: f64,
-    /// A candidate gets the rest of its pilot groups only if its cost ratio to PT
+    /// A candidate gets its pilot halves only if its cost ratio to PT
     /// (counted on its first sample per pixel) times
     /// `exp(hopeless_sigmas x variance_ratio_prior)` (the efficiency it
     /// would have with a variance that far below PT's: 0.42x at 2.5 and
     /// 0.35, a priori 0.6% likely) reaches the best efficiency measured so
     /// far for its estimator, within [`Self::tie`]. On cornell-jade P = 1
     /// and 2 cost 0.72x and 0.96x of PT's per sample where P = 0 is 4x
-    /// more efficient: their pilot was 40% of the pilot's samples.
+    /// more efficient: their halves were 40% of the pilot.
     pub hopeless_sigmas: f64,
 }
 
@@ -182,7 +176,7 @@ pub struct Trial {
     pub cost: f64,
     /// Efficiency as a multiple of PT's (0 when rejected as biased).
     pub efficiency: f64,
-    /// The pilot image's mean (all groups, pixels and channels) and
+    /// The pilot image's mean (both halves, all pixels and channels) and
     /// the variance of that mean.
     pub mean: f64,
     pub mean_var: f64,
@@ -368,12 +362,12 @@ fn candidates(est: &crate::estimator::Estimator, opts: &PilotOptions) -> Vec<Cho
         .collect()
 }
 
-/// A candidate's first group of pilot samples: what it costs per sample,
-/// counted, before the rest of the pilot is spent on it.
+/// A candidate's first sample per pixel of its first pilot half: what it
+/// costs per sample, counted, before the rest of the pilot is spent on it.
 struct Probe {
     index: usize,
     choice: Choice,
-    image: Image,
+    film: Vec<PixelSum>,
     /// Counted work of the probe ([`work_cost`]) and its camera samples.
     cost: f64,
     samples: u64,
@@ -385,12 +379,13 @@ impl Probe {
     }
 }
 
-/// A candidate measured with all its pilot groups.
+/// A candidate measured with both pilot halves.
 struct Measured {
     index: usize,
     choice: Choice,
-    groups: Vec<Image>,
-    /// Counted work per sample over all its groups.
+    a: Image,
+    b: Image,
+    /// Counted work per sample over both halves.
     cost: f64,
 }
 
@@ -412,7 +407,7 @@ pub fn decide(
     rs.camera = camera.scaled(scale);
     let (width, height) = (rs.camera.width, rs.camera.height);
     let mut samples = 0u64;
-    // Samples `range` rendered with `seed`: films of disjoint
+    // Samples `range` of a half rendered with `seed`: films of disjoint
     // ranges merge into exactly the film of their union.
     let mut run = |rs: &RenderScene, seed: u64, range: std::ops::Range<u32>| {
         let (film, st) = render_film(
@@ -431,11 +426,8 @@ pub fn decide(
     let image = |film: &[PixelSum]| film_image(width, height, film);
     // Hashed, so that the pilots of different render seeds share no
     // stream (XOR with small constants mapped seed 0's pilots onto seed 3's).
-    let seed = mix64(mix64(opts.seed) ^ 0xA070_0000_0000_0001);
-    // Every configuration renders the same samples of the same seed (common
-    // random numbers), in groups whose spread gives each pixel's variance.
-    let (per_group, group_count) = pilot_groups(opts.spp);
-    let group = |k: u32| k * per_group..(k + 1) * per_group;
+    let seeds = [1u64, 2].map(|k| mix64(mix64(opts.seed) ^ (0xA070_0000_0000_0000 | k)));
+    let whole = 0..opts.spp;
 
     let base_instances = ests.per_instance.clone();
     // Estimator `index` alone, in configuration `choice`.
@@ -446,31 +438,25 @@ pub fn decide(
             .collect();
         ests.configure_one(index, Some((choice.min_bounces, choice.entry_nee)));
     };
-    // PT's groups.
-    let (mut pt_work, mut pt_samples) = (0.0, 0u64);
-    let pt_groups: Vec<Image> = (0..group_count)
-        .map(|k| {
-            let (film, c, n) = run(rs, seed, group(k));
-            pt_work += c;
-            pt_samples += n;
-            image(&film)
-        })
-        .collect();
-    let pt_cost = pt_work / pt_samples.max(1) as f64;
-    // Every candidate's first group: its cost per sample is then counted,
-    // at a fraction of its pilot (an eighth of the 4-spp pilot), and the
-    // group is its first if it goes on.
+    // PT's two halves.
+    let (fa, ca, na) = run(rs, seeds[0], whole.clone());
+    let (fb, cb, nb) = run(rs, seeds[1], whole.clone());
+    let (pa, pb) = (image(&fa), image(&fb));
+    let pt_cost = (ca + cb) / (na + nb).max(1) as f64;
+    // Every candidate's first sample per pixel: its cost per sample is then
+    // counted, at a fraction of a half (a quarter of the 4-spp pilot), and
+    // the sample is the start of its first half if it goes on.
     let mut probes: Vec<Probe> = Vec::new();
     for index in 0..ests.list.len() {
         for choice in candidates(&ests.list[index], opts) {
             configure(&mut ests, index, choice);
             rs.estimators = Some(ests);
-            let (film, cost, n) = run(rs, seed, group(0));
+            let (film, cost, n) = run(rs, seeds[0], 0..1);
             ests = rs.estimators.take().expect("put there above");
             probes.push(Probe {
                 index,
                 choice,
-                image: image(&film),
+                film,
                 cost,
                 samples: n,
             });
@@ -478,7 +464,7 @@ pub fn decide(
     }
 
     // The error's normalization, as relMSE's reference: the mean of all
-    // the pilot's renders (PT's groups and each measured candidate's),
+    // the pilot's renders (PT's halves and each measured candidate's),
     // blurred over 5 x 5 pixels. Unblurred, a few spp miss what is rare
     // (light seen through glass), and any pixel the reference missed would
     // make an answer there look like a huge error; made of one
@@ -488,7 +474,7 @@ pub fn decide(
     // at a third of PT's pilot cost.) While candidates are still being
     // measured, the mean of those rendered so far serves.
     let normalization = |renders: &[&Image]| {
-        let mut mean = vec![[0.0f32; 3]; pt_groups[0].pixels.len()];
+        let mut mean = vec![[0.0f32; 3]; pa.pixels.len()];
         for img in renders {
             for (m, p) in mean.iter_mut().zip(&img.pixels) {
                 for c in 0..3 {
@@ -502,15 +488,15 @@ pub fn decide(
         }
         blur(&mean, width as usize, 2)
     };
-    // PT's groups and every measured candidate's.
-    fn renders<'a>(pt: &'a [Image], measured: &'a [Measured]) -> Vec<&'a Image> {
-        pt.iter()
-            .chain(measured.iter().flat_map(|m| &m.groups))
+    // PT's halves and every measured candidate's.
+    fn renders<'a>(pt: [&'a Image; 2], measured: &'a [Measured]) -> Vec<&'a Image> {
+        pt.into_iter()
+            .chain(measured.iter().flat_map(|m| [&m.a, &m.b]))
             .collect()
     }
-    let trial = |norm: &[[f32; 3]], choice: Option<Choice>, groups: &[Image], cost: f64| {
-        let (mean, mean_var) = mean_and_variance(groups);
-        let pixel_rel_var = pixel_rel_var(groups, norm);
+    let trial = |norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: f64| {
+        let (mean, mean_var) = mean_and_variance(a, b);
+        let pixel_rel_var = pixel_rel_var(a, b, norm);
         let (rel_var, rel_var_se) = mean_and_standard_error(&pixel_rel_var);
         Trial {
             choice,
@@ -537,7 +523,7 @@ pub fn decide(
     };
 
     // Per estimator, its candidates from the cheapest up: each gets the
-    // rest of its groups, unless even a variance
+    // rest of its first half and its second half, unless even a variance
     // far below PT's could not make it tie the best measured so far (see
     // PilotOptions::hopeless_sigmas).
     let optimism = (opts.hopeless_sigmas * opts.variance_ratio_prior).exp();
@@ -559,26 +545,24 @@ pub fn decide(
             }
             configure(&mut ests, index, probe.choice);
             rs.estimators = Some(ests);
-            let (mut work, mut n) = (probe.cost, probe.samples);
-            let mut groups = vec![probe.image.clone()];
-            for k in 1..group_count {
-                let (film, c, s) = run(rs, seed, group(k));
-                work += c;
-                n += s;
-                groups.push(image(&film));
-            }
+            let (mut first, c1, n1) = run(rs, seeds[0], 1..opts.spp);
+            let (second, c2, n2) = run(rs, seeds[1], whole.clone());
             ests = rs.estimators.take().expect("put there above");
+            for (f, p) in first.iter_mut().zip(&probe.film) {
+                f.merge(p);
+            }
+            let cost = (probe.cost + c1 + c2) / (probe.samples + n1 + n2).max(1) as f64;
             let m = Measured {
                 index,
                 choice: probe.choice,
-                groups,
-                cost: work / n.max(1) as f64,
+                a: image(&first),
+                b: image(&second),
+                cost,
             };
-            let mut so_far = renders(&pt_groups, &measured);
-            so_far.extend(&m.groups);
-            let norm = normalization(&so_far);
-            let pt = trial(&norm, None, &pt_groups, pt_cost);
-            let mut t = trial(&norm, Some(m.choice), &m.groups, m.cost);
+            let so_far = renders([&pa, &pb], &measured);
+            let norm = normalization(&[so_far, vec![&m.a, &m.b]].concat());
+            let pt = trial(&norm, None, &pa, &pb, pt_cost);
+            let mut t = trial(&norm, Some(m.choice), &m.a, &m.b, m.cost);
             score(&pt, &mut t);
             if t.efficiency.is_finite() {
                 best = best.max(t.efficiency);
@@ -588,8 +572,8 @@ pub fn decide(
     }
 
     // The final measurements, against the normalization of every render.
-    let norm = normalization(&renders(&pt_groups, &measured));
-    let pt = trial(&norm, None, &pt_groups, pt_cost);
+    let norm = normalization(&renders([&pa, &pb], &measured));
+    let pt = trial(&norm, None, &pa, &pb, pt_cost);
     let mut decisions = Vec::new();
     for index in 0..ests.list.len() {
         // In candidate order (P ascending), as printed.
@@ -600,7 +584,7 @@ pub fn decide(
                 .find(|m| m.index == index && m.choice == probe.choice);
             trials.push(match done {
                 Some(m) => {
-                    let mut t = trial(&norm, Some(m.choice), &m.groups, m.cost);
+                    let mut t = trial(&norm, Some(m.choice), &m.a, &m.b, m.cost);
                     score(&pt, &mut t);
                     t
                 }
@@ -682,58 +666,17 @@ fn blur(img: &[[f32; 3]], width: usize, r: usize) -> Vec<[f32; 3]> {
     out
 }
 
-/// Samples per pixel of each pilot group and how many groups, for a pilot
-/// of `2 spp` samples per pixel per configuration ([`PilotOptions::spp`]): at
-/// most [`PILOT_GROUPS`] groups of equal size (a remainder of samples is
-/// not rendered).
-pub fn pilot_groups(spp: u32) -> (u32, u32) {
-    let total = 2 * spp.max(1);
-    let per_group = total.div_ceil(PILOT_GROUPS);
-    (per_group, total / per_group)
-}
-
-/// The most groups a pilot renders per configuration. Each pixel's variance
-/// comes from the spread of its group means, with one degree of freedom
-/// fewer than groups: the two halves the pilot rendered before gave one.
-/// Eight groups of one sample (the 64-spp render's pilot) give seven; over
-/// 24 seeds they turned glass-front-lamp's estimator on at 18 where the two
-/// halves had at 4 of 8 (BENCHMARKS.md, "auto"), though the ratio's
-/// uncertainty over pixels stayed +-30-45% on the glass scenes: rare bright
-/// paths, not the degrees of freedom, make most of it.
-pub const PILOT_GROUPS: u32 = 8;
-
-/// Each pixel's mean over `groups` (equal-sized groups of samples), and
-/// the sample variance of that mean (the spread of the group means over
-/// their count), per channel.
-fn pixel_moments(groups: &[Image]) -> impl Iterator<Item = ([f64; 3], [f64; 3])> + '_ {
-    let n = groups.len();
-    let pixels = groups.first().map_or(0, |g| g.pixels.len());
-    (0..pixels).map(move |i| {
-        let mut mean = [0.0f64; 3];
-        let mut var = [0.0f64; 3];
-        for c in 0..3 {
-            let m = groups.iter().map(|g| g.pixels[i][c] as f64).sum::<f64>() / n.max(1) as f64;
-            let ss: f64 = groups
-                .iter()
-                .map(|g| (g.pixels[i][c] as f64 - m).powi(2))
-                .sum();
-            mean[c] = m;
-            var[c] = ss / (n.saturating_sub(1).max(1) * n.max(1)) as f64;
-        }
-        (mean, var)
-    })
-}
-
-/// The mean of the groups' mean image over pixels and channels, and its
-/// variance (from each pixel's).
-fn mean_and_variance(groups: &[Image]) -> (f64, f64) {
+/// The mean of the two halves' mean image over pixels and channels, and
+/// its variance (from each pixel's `(a - b)^2 / 4`).
+fn mean_and_variance(a: &Image, b: &Image) -> (f64, f64) {
     let mut sum = 0.0f64;
     let mut var = 0.0f64;
     let mut n = 0usize;
-    for (m, v) in pixel_moments(groups) {
+    for (x, y) in a.pixels.iter().zip(&b.pixels) {
         for c in 0..3 {
-            sum += m[c];
-            var += v[c];
+            let (x, y) = (x[c] as f64, y[c] as f64);
+            sum += 0.5 * (x + y);
+            var += 0.25 * (x - y) * (x - y);
             n += 1;
         }
     }
@@ -741,18 +684,21 @@ fn mean_and_variance(groups: &[Image]) -> (f64, f64) {
     (sum / n, var / (n * n))
 }
 
-/// Variance of each pixel's mean over the groups, relative to `norm` as
-/// relMSE is to its reference, averaged over channels: one value per pixel,
-/// whose mean is the trial's relative variance per pixel. Non-finite pixels
-/// count as infinite error.
-fn pixel_rel_var(groups: &[Image], norm: &[[f32; 3]]) -> Vec<f64> {
-    pixel_moments(groups)
+/// Variance of the two halves' mean per pixel, relative to `norm` as relMSE
+/// is to its reference, averaged over channels: one value per pixel, whose
+/// mean is the trial's relative variance per pixel. Non-finite pixels count
+/// as infinite error.
+fn pixel_rel_var(a: &Image, b: &Image, norm: &[[f32; 3]]) -> Vec<f64> {
+    a.pixels
+        .iter()
+        .zip(&b.pixels)
         .zip(norm)
-        .map(|((_, v), r)| {
+        .map(|((x, y), r)| {
             let mut pixel = 0.0f64;
             for c in 0..3 {
+                let d = (x[c] - y[c]) as f64;
                 let r = r[c] as f64;
-                pixel += v[c] / (r * r + 0.01) / 3.0;
+                pixel += 0.25 * d * d / (r * r + 0.01) / 3.0;
             }
             if pixel.is_finite() {
                 pixel
@@ -939,50 +885,6 @@ mod tests {
             None
         );
         assert_eq!(choose(&[], &opts), None);
-    }
-
-    #[test]
-    fn the_pilot_renders_equal_groups_of_at_most_eight() {
-        // (samples per group, groups) for PilotOptions::spp 1, 3, 4, 5, 16.
-        assert_eq!(pilot_groups(1), (1, 2));
-        assert_eq!(pilot_groups(3), (1, 6));
-        assert_eq!(pilot_groups(4), (1, 8));
-        assert_eq!(pilot_groups(5), (2, 5));
-        assert_eq!(pilot_groups(16), (4, 8));
-        assert_eq!(pilot_groups(0), (1, 2));
-    }
-
-    /// The variance of a pixel's mean is the spread of its group means over
-    /// their count; the image's mean and that mean's variance follow.
-    #[test]
-    fn group_means_give_each_pixel_its_variance() {
-        let group = |v: [f32; 2]| Image {
-            width: 2,
-            height: 1,
-            pixels: vec![[v[0]; 3], [v[1]; 3]],
-        };
-        // Pixel 0: 1, 3, 5, 7 (mean 4, sample variance 20 / 3, of the mean
-        // 5 / 3); pixel 1: constant 2.
-        let groups: Vec<Image> = [1.0, 3.0, 5.0, 7.0]
-            .iter()
-            .map(|&x| group([x, 2.0]))
-            .collect();
-        let m: Vec<_> = pixel_moments(&groups).collect();
-        assert!((m[0].0[0] - 4.0).abs() < 1e-12 && (m[0].1[1] - 5.0 / 3.0).abs() < 1e-12);
-        assert_eq!(m[1], ([2.0; 3], [0.0; 3]));
-        let (mean, var) = mean_and_variance(&groups);
-        assert!((mean - 3.0).abs() < 1e-12);
-        assert!((var - 3.0 * (5.0 / 3.0) / 36.0).abs() < 1e-12);
-        // Relative to a normalization of 1 (+ 0.01) per channel.
-        let rel = pixel_rel_var(&groups, &[[1.0; 3], [1.0; 3]]);
-        assert!((rel[0] - 5.0 / 3.0 / 1.01).abs() < 1e-9 && rel[1] == 0.0);
-        // A non-finite sample makes its pixel's error infinite.
-        let mut broken = groups.clone();
-        broken[2].pixels[1][0] = f32::NAN;
-        assert_eq!(
-            pixel_rel_var(&broken, &[[1.0; 3], [1.0; 3]])[1],
-            f64::INFINITY
-        );
     }
 
     #[test]
