@@ -62,8 +62,10 @@ pub struct WorkCounts {
     /// apart).
     pub camera_node_visits: u64,
     /// The leaves (triangle packets, TLAS leaves) among `node_visits` not
-    /// spent on camera rays: the `auto` pilot's cost model weighs them
-    /// apart from inner nodes.
+    /// spent on camera rays. Reported for `tools/fit_cost_model.py`; the
+    /// pilot's cost model counts them with the other node visits
+    /// (BENCHMARKS.md, "auto": weighed apart, they made glass right and
+    /// first-vertex NEE on gold too cheap).
     pub leaf_visits: u64,
 }
 

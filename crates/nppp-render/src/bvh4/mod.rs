@@ -461,10 +461,10 @@ thread_local! {
     /// deterministic measure of traversal work (a render's time is not),
     /// read per tile by the renderer. Added to once per traversal.
     static NODE_VISITS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
-    /// The leaves among them: a leaf tests up to 8 primitives (a triangle
-    /// packet, or instances whose own trees are then walked), several inner
-    /// nodes' worth of work, and rays inside a thin object (a glass knot's
-    /// internal bounces) enter many leaves per node visited.
+    /// The leaves among them (a mesh leaf's triangle packets, a TLAS leaf's
+    /// instance), counted apart for the cost fit's diagnostics: timed
+    /// renders fitted a leaf visit at a small fraction of an inner node's
+    /// (its packets were prefetched while its parent was tested).
     static LEAF_VISITS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
 }
 
