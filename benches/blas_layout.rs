@@ -1,10 +1,10 @@
-//! The renderer's BLAS (crate::bvh4, 4-wide, SoA) against obvhs' CWBVH on the
+//! The renderer's BLAS (crate::bvh, 8-wide, SoA) against obvhs' CWBVH on the
 //! same triangles and rays, one thread, runs interleaved so that a noisy
 //! machine hurts both alike. Prints Mrays/s per ray kind and the ratio.
 
 use glam::{Vec3, Vec3A};
 use nppp_render::RenderScene;
-use nppp_render::bvh4::MeshBvh;
+use nppp_render::bvh::MeshBvh;
 use obvhs::{BvhBuildParams, ray::Ray, ray::RayHit, triangle::Triangle};
 use std::time::{Duration, Instant};
 
@@ -36,7 +36,7 @@ fn main() {
     );
     let t_cw = t0.elapsed();
     println!(
-        "{} triangles; build bvh4 {:.2?} ({:.1} MiB), cwbvh {:.2?}",
+        "{} triangles; build bvh8 {:.2?} ({:.1} MiB), cwbvh {:.2?}",
         tris.len(),
         t_b4,
         b4.memory_bytes() as f64 / 1048576.0,
@@ -104,7 +104,7 @@ fn main() {
     for (k, name) in ["primary", "incoherent", "shadow"].iter().enumerate() {
         let (a, b) = (1e-6 / best[k][0], 1e-6 / best[k][1]);
         println!(
-            "{name:>10}: cwbvh {a:.2} Mrays/s, bvh4 {b:.2} Mrays/s, ratio {:.2}",
+            "{name:>10}: cwbvh {a:.2} Mrays/s, bvh8 {b:.2} Mrays/s, ratio {:.2}",
             b / a
         );
     }

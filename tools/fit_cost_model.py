@@ -1,12 +1,12 @@
 #!/usr/bin/env python3
 """Fits the `auto` pilot's cost model (crates/nppp-render/src/auto.rs) to timed
-renders: render time = a x the camera rays' BVH node visits + b x every other
-node visit + c x shadow rays + d x estimator entries, by least squares on
+renders: render time = a x the later rays' inner BVH node visits + b x shadow rays
++ c x estimator entries + d x mask skips, by least squares on
 relative error (every
 render counts the same, whatever its length). Renders every scene of
 data/scenes as plain PT and with its estimators at P = 0, 1, 2 (with and
 without first-vertex NEE), in alternating rounds, reads the work each render
-counted from its log, and prints the weights in deep node-visit units (what
+counted from its log, and prints the weights in later inner node-visit units (what
 auto.rs's COST_PER_* constants hold) and each render's predicted over
 measured time. Standard library only; not part of the pipeline or of
 `make test`.
@@ -27,10 +27,10 @@ from nppp_log import TIME, render_log
 TRACED = re.compile(r"traced: ([0-9.]+) M rays, ([0-9.]+) M shadow rays, ([0-9.]+) M BVH node visits "
                     r"\(([0-9.]+) M by camera rays, ([0-9.]+) M leaves by later rays\)")
 # What each render counted, in this order.
-TERMS = ["camera node visit", "deep node visit", "closest-hit ray", "shadow ray", "estimator entry",
-         "deep leaf visit"]
-FITTED = ["camera node visit", "deep node visit", "shadow ray", "estimator entry"]
-ENTRIES = re.compile(r"estimators \([A-Za-z]+, P = \d+\): (\d+) entries")
+TERMS = ["camera node visit", "deep inner node visit", "closest-hit ray", "shadow ray",
+         "estimator entry", "deep leaf visit", "mask skip"]
+FITTED = ["deep inner node visit", "shadow ray", "estimator entry", "mask skip"]
+ENTRIES = re.compile(r"estimators \([A-Za-z]+, P = \d+\): (\d+) entries, (\d+) mask skips")
 
 # scene, common flags, whether its estimator's surface takes a light sample
 SCENES = [
@@ -60,13 +60,12 @@ def render(nppp, scene, spp, seed, flags, out):
     log, (t, w) = render_log(cmd, TIME, TRACED)
     e = ENTRIES.search(log)
     rays, shadow, nodes, camera, leaves = (float(x) * 1e6 for x in w.groups())
-    # Camera rays' node visits apart from the rest: coherent, cheaper. The
-    # later rays' leaf visits (a part of their node visits) are kept in the
-    # dump but not fitted: fitting them apart (BENCHMARKS.md, "auto") got
-    # glass right but first-vertex NEE on gold 9% too cheap (1.06x PT's
-    # time against 1.16x), the direction that turns a losing estimator on.
-    return float(t.group(1)), [camera, nodes - camera, rays, shadow, float(e.group(1)) if e else 0.0,
-                               leaves]
+    # The later rays' inner node visits apart from the camera rays' visits
+    # (coherent, in cache) and from their leaf visits (prefetched while the
+    # parent was tested): both are counted in the dump and fitted near zero
+    # (BENCHMARKS.md, "auto"), so the model leaves them out.
+    entries, skips = (float(e.group(1)), float(e.group(2))) if e else (0.0, 0.0)
+    return float(t.group(1)), [camera, nodes - camera - leaves, rays, shadow, entries, leaves, skips]
 
 
 def solve(a, b):
@@ -118,8 +117,8 @@ def main():
     w = [0.0] * len(TERMS)
     for k, v in zip(fit, solve(ata, atb)):
         w[k] = v
-    unit = w[TERMS.index("deep node visit")]
-    print("\n| term | seconds per item (2 threads) | in deep node visits |")
+    unit = w[TERMS.index("deep inner node visit")]
+    print("\n| term | seconds per item (2 threads) | in inner node visits |")
     print("|---|---:|---:|")
     for name, v in zip(TERMS, w):
         if name in FITTED:

@@ -1,6 +1,6 @@
 //! Ray queries against the scene: a bottom-level BVH per mesh and a
 //! top-level BVH over instances with rigid transforms and uniform scale
-//! (both [`crate::bvh4`] layouts), plus one world-space BLAS of everything
+//! (both [`crate::bvh`] layouts), plus one world-space BLAS of everything
 //! that need not be instanced.
 //!
 //! Instances only reference their mesh's BLAS, so a mesh instanced thousands
@@ -8,12 +8,12 @@
 //! because scale is uniform and directions stay unit, a world-space distance
 //! is the object-space distance times the scale.
 
-use crate::bvh4::{InstanceBvh, MeshBvh, Visit};
+use crate::bvh::{InstanceBvh, MeshBvh, Visit};
 use glam::{Quat, Vec3, Vec3A};
 use nppp_scene::{Mesh, Transform};
 use obvhs::triangle::Triangle;
 
-/// The bottom level: one mesh's triangles in a 4-wide BVH.
+/// The bottom level: one mesh's triangles in an 8-wide BVH.
 pub struct Blas {
     bvh: MeshBvh,
     triangles: usize,

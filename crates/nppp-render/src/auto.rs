@@ -15,9 +15,9 @@
 //!   `(a - b)^2 / 4`, relative to the mean of all the pilot's renders as
 //!   relMSE is to its reference (`/ (r^2 + 0.01)`, `r` blurred over 5 x 5
 //!   pixels), averaged over pixels and channels;
-//! - the cost per sample: the work the render counted (BVH node visits, the
-//!   camera rays' apart, shadow rays, estimator entries) weighted by what
-//!   each costs ([`work_cost`]). Counted work, not the wall clock: the
+//! - the cost per sample: the work the render counted (inner BVH node
+//!   visits of all but the camera rays, shadow rays, estimator entries,
+//!   mask skips) weighted by what each costs ([`work_cost`]). Counted work, not the wall clock: the
 //!   decision, and so the image, is the same at any thread count and on a
 //!   busy machine;
 //! - its image mean against PT's: a configuration whose mean differs by more
@@ -29,14 +29,14 @@
 //! per-pixel variance at 4 spp is heavy-tailed, and one configuration
 //! catching a firefly that another missed moved the raw ratio 10x-100x
 //! between seeds. An estimator is used only if its best configuration
-//! beats PT's efficiency by [`PilotOptions::margin`] (the cost model is
-//! within about 10% of measured times), and among its configurations within
+//! beats PT's efficiency by [`PilotOptions::margin`] (the cost model
+//! predicts time ratios to PT's within 6% RMS, 12% at most), and among its configurations within
 //! [`PilotOptions::tie`] of the best the cheapest wins ([`choose`]).
 //! Candidates are decided one estimator at a time, not by trying every
 //! combination. The pilot is 2-3% of a 64-spp render where PT is the
 //! cost, 6-8% on cornell-jade, where the estimator is 4x cheaper than PT.
 
-use crate::estimator::{EntryNee, Estimators};
+use crate::estimator::{EntryNee, EstimatorStats, Estimators};
 use crate::film::{PixelSum, film_image};
 use crate::image_io::Image;
 use crate::integrator::WorkCounts;
@@ -45,38 +45,43 @@ use crate::scene_data::RenderScene;
 use crate::surface::SurfaceKind;
 use nppp_geom::rng::mix64;
 
-/// The cost model, in units of one BVH node visit of a path's later rays
-/// (incoherent: most of them miss the cache). Fitted by
-/// `tools/fit_cost_model.py` (least squares on relative error) to 86 timed
-/// renders of the seven benchmark scenes (PT and NPPP at P = 0..2, with and
-/// without first-vertex NEE, 2 rounds, 24 spp) on the 2-core machine
-/// (BENCHMARKS.md, "auto"): 24.4 ns per later node visit, 3.8 ns per camera
-/// ray's node visit, 49 ns per shadow ray beyond its visits, 909 ns per
-/// entry (two threads); time ratios to PT predicted with an RMS error of
-/// 8% (largest 17%). The largest misses under-rate skipping where PT's
-/// skipped bounces are dear (cornell-glass P = 1: 0.97x PT's time
-/// predicted, 0.86x measured; cornell-gold P = 0 without NEE: 1.05x
-/// against 0.90x), so auto errs towards PT there. Closest-hit rays have no
-/// weight of their own: they track node visits too closely for the fit to
-/// tell them apart (their weight came out negative).
+/// The cost model, in units of one inner BVH node visit of a path's later
+/// rays (8 boxes tested; incoherent rays miss the cache). Fitted by
+/// `tools/fit_cost_model.py` (least squares on relative error) to the 8-wide
+/// BVH's counts and the faster of two timed sets of 86 renders each (the
+/// seven benchmark scenes, PT and NPPP at P = 0..2 with and without
+/// first-vertex NEE, 24 spp, 2 rounds) on the 2-core machine (BENCHMARKS.md,
+/// "auto"): 31.4 ns per later inner node visit, 84 ns per shadow ray beyond
+/// its visits, 560 ns per entry, 46 ns per mask skip (two threads); time
+/// ratios to PT predicted with an RMS error of 6.1% (largest 12%: the room's
+/// P = 1 with first-vertex NEE, 1.04x predicted, 1.18x measured).
 ///
-/// A camera ray's node visit: camera rays of a tile are coherent and find
-/// their nodes in cache.
-pub const COST_PER_CAMERA_NODE_VISIT: f64 = 0.16;
+/// Left out, and why: the camera rays' node visits (coherent, in cache,
+/// fitted at -0.02, and the same in every configuration of a scene); leaf
+/// visits (0.12 of an inner visit: a leaf's packets were prefetched while
+/// its parent was tested); closest-hit rays (they track node visits too
+/// closely for the fit to tell them apart). Counting leaves and camera
+/// rays' visits as the 4-wide model did predicted the 8-wide renderer's
+/// time ratios with 12% RMS error.
+///
 /// A shadow ray beyond its node visits (the light sample, the BSDF
 /// evaluation, the MIS weights).
-pub const COST_PER_SHADOW_RAY: f64 = 2.0;
-/// One estimator entry (the mask and latent lookups, its row of the batched
-/// decoder, decoding the exit).
-pub const COST_PER_ENTRY: f64 = 37.0;
+pub const COST_PER_SHADOW_RAY: f64 = 2.7;
+/// One estimator entry (the latent lookup, its row of the batched decoder,
+/// decoding the exit; its mask test included).
+pub const COST_PER_ENTRY: f64 = 17.8;
+/// A ray whose chord the mask judged a miss (the chord's coordinates and a
+/// mask lookup): the room of 2,025 knots makes about one per sample.
+pub const COST_PER_MASK_SKIP: f64 = 1.5;
 
-/// Counted work of a render, in later-node-visit equivalents.
-pub fn work_cost(work: &WorkCounts, entries: u64) -> f64 {
-    let camera = work.camera_node_visits.min(work.node_visits);
-    (work.node_visits - camera) as f64
-        + COST_PER_CAMERA_NODE_VISIT * camera as f64
+/// Counted work of a render, in later-inner-node-visit equivalents.
+pub fn work_cost(work: &WorkCounts, estimators: &EstimatorStats) -> f64 {
+    let later = work.node_visits.saturating_sub(work.camera_node_visits);
+    let inner = later.saturating_sub(work.leaf_visits);
+    inner as f64
         + COST_PER_SHADOW_RAY * work.shadow_rays as f64
-        + COST_PER_ENTRY * entries as f64
+        + COST_PER_ENTRY * estimators.entries as f64
+        + COST_PER_MASK_SKIP * estimators.mask_skips as f64
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -421,7 +426,7 @@ pub fn decide(
             range,
         );
         samples += st.samples;
-        (film, work_cost(&st.work, st.estimators.entries), st.samples)
+        (film, work_cost(&st.work, &st.estimators), st.samples)
     };
     let image = |film: &[PixelSum]| film_image(width, height, film);
     // Hashed, so that the pilots of different render seeds share no

@@ -15,7 +15,7 @@
 
 use crate::accel::{Accel, SceneHit};
 use crate::bsdf::Bsdf;
-use crate::bvh4::Visit;
+use crate::bvh::Visit;
 use crate::object_walk::WalkVertex;
 use crate::surface::SurfaceKind;
 use glam::Vec3;

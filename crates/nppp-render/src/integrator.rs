@@ -57,15 +57,13 @@ pub struct WorkCounts {
     /// rays, estimator queries, oracle walks).
     pub node_visits: u64,
     /// The part of `node_visits` spent on the camera rays' closest hits:
-    /// coherent rays whose nodes are in cache, several times cheaper per
-    /// visit than a deep path's (the `auto` pilot's cost model weighs them
-    /// apart).
+    /// coherent rays whose nodes are in cache, far cheaper per visit than a
+    /// deep path's (the `auto` pilot's cost model leaves them out).
     pub camera_node_visits: u64,
     /// The leaves (triangle packets, TLAS leaves) among `node_visits` not
-    /// spent on camera rays. Reported for `tools/fit_cost_model.py`; the
-    /// pilot's cost model counts them with the other node visits
-    /// (BENCHMARKS.md, "auto": weighed apart, they made glass right and
-    /// first-vertex NEE on gold too cheap).
+    /// spent on camera rays: the `auto` pilot's cost model counts inner
+    /// nodes only (a leaf's packets were prefetched while its parent was
+    /// tested).
     pub leaf_visits: u64,
 }
 
@@ -108,15 +106,15 @@ impl Wavefront {
     ) {
         // Everything below runs on this thread: the visits counted here are
         // this batch's own.
-        let visits_before = crate::bvh4::node_visits();
-        let leaves_before = crate::bvh4::leaf_visits();
+        let visits_before = crate::bvh::node_visits();
+        let leaves_before = crate::bvh::leaf_visits();
         let mut camera_leaves = 0;
         let mut camera_step = true;
         while !self.paths.is_empty() {
             self.intersect(scene, settings);
             if camera_step {
-                self.work.camera_node_visits += crate::bvh4::node_visits() - visits_before;
-                camera_leaves = crate::bvh4::leaf_visits() - leaves_before;
+                self.work.camera_node_visits += crate::bvh::node_visits() - visits_before;
+                camera_leaves = crate::bvh::leaf_visits() - leaves_before;
                 camera_step = false;
             }
             self.answer_estimators(scene, settings);
@@ -154,8 +152,8 @@ impl Wavefront {
             }
             self.paths.truncate(w);
         }
-        self.work.node_visits += crate::bvh4::node_visits() - visits_before;
-        self.work.leaf_visits += crate::bvh4::leaf_visits() - leaves_before - camera_leaves;
+        self.work.node_visits += crate::bvh::node_visits() - visits_before;
+        self.work.leaf_visits += crate::bvh::leaf_visits() - leaves_before - camera_leaves;
     }
 
     fn intersect(&mut self, scene: &RenderScene, settings: &IntegratorSettings) {

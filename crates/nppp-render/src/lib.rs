@@ -9,7 +9,7 @@
 pub mod accel;
 pub mod auto;
 pub mod bsdf;
-pub mod bvh4;
+pub mod bvh;
 pub mod camera;
 pub mod datagen;
 pub mod entry;
