@@ -17,9 +17,9 @@
 //!   pixels), averaged over pixels and channels;
 //! - the cost per sample: the work the render counted (inner BVH node
 //!   visits of all but the camera rays, shadow rays, estimator entries,
-//!   mask skips) weighted by what each costs ([`work_cost`]). Counted work, not the wall clock: the
-//!   decision, and so the image, is the same at any thread count and on a
-//!   busy machine;
+//!   mask skips) weighted by what each costs ([`work_cost`]). Counted
+//!   work, not the wall clock: the decision, and so the image, is the same
+//!   at any thread count and on a busy machine;
 //! - its image mean against PT's: a configuration whose mean differs by more
 //!   than noise and [`PilotOptions::bias_tolerance`] is rejected (a network
 //!   that misses light has little variance and would look efficient).
@@ -30,8 +30,9 @@
 //! catching a firefly that another missed moved the raw ratio 10x-100x
 //! between seeds. An estimator is used only if its best configuration
 //! beats PT's efficiency by [`PilotOptions::margin`] (the cost model
-//! predicts time ratios to PT's within 6% RMS, 12% at most), and among its configurations within
-//! [`PilotOptions::tie`] of the best the cheapest wins ([`choose`]).
+//! predicts time ratios to PT's within 6% RMS, 12% at most), and among its
+//! configurations within [`PilotOptions::tie`] of the best the cheapest
+//! wins ([`choose`]).
 //! Candidates are decided one estimator at a time, not by trying every
 //! combination. The pilot is 2-3% of a 64-spp render where PT is the
 //! cost, 6-8% on cornell-jade, where the estimator is 4x cheaper than PT.
