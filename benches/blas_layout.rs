@@ -26,8 +26,8 @@ fn main() {
         }
     }
     let t0 = Instant::now();
-    let b4 = MeshBvh::build(&tris);
-    let t_b4 = t0.elapsed();
+    let ours = MeshBvh::build(&tris);
+    let t_ours = t0.elapsed();
     let t0 = Instant::now();
     let cw = obvhs::cwbvh::builder::build_cwbvh_from_tris(
         &tris,
@@ -38,8 +38,8 @@ fn main() {
     println!(
         "{} triangles; build bvh8 {:.2?} ({:.1} MiB), cwbvh {:.2?}",
         tris.len(),
-        t_b4,
-        b4.memory_bytes() as f64 / 1048576.0,
+        t_ours,
+        ours.memory_bytes() as f64 / 1048576.0,
         t_cw
     );
 
@@ -57,14 +57,14 @@ fn main() {
         );
         hit.t
     };
-    let closest_b4 = |o: Vec3, d: Vec3| {
-        b4.intersect(o.into(), d.into(), 0.0, f32::INFINITY)
+    let closest_ours = |o: Vec3, d: Vec3| {
+        ours.intersect(o.into(), d.into(), 0.0, f32::INFINITY)
             .map_or(f32::INFINITY, |h| h.t)
     };
     // Same answers first.
     let mut differ = 0;
     for (o, d) in primary.iter().chain(&incoherent) {
-        let (a, b) = (closest_cw(*o, *d), closest_b4(*o, *d));
+        let (a, b) = (closest_cw(*o, *d), closest_ours(*o, *d));
         if a != b && (a - b).abs() > 1e-4 * a.abs().max(1.0) {
             differ += 1;
         }
@@ -77,7 +77,10 @@ fn main() {
             let s: f32 = rays.iter().map(|(o, d)| closest_cw(*o, *d).min(1e9)).sum();
             let a = t0.elapsed().as_secs_f64();
             let t0 = Instant::now();
-            let s2: f32 = rays.iter().map(|(o, d)| closest_b4(*o, *d).min(1e9)).sum();
+            let s2: f32 = rays
+                .iter()
+                .map(|(o, d)| closest_ours(*o, *d).min(1e9))
+                .sum();
             let b = t0.elapsed().as_secs_f64();
             std::hint::black_box((s, s2));
             best[k][0] = best[k][0].min(a / rays.len() as f64);
@@ -94,7 +97,7 @@ fn main() {
         let t0 = Instant::now();
         let c2 = shadow
             .iter()
-            .filter(|(o, d, t)| b4.occluded((*o).into(), (*d).into(), 0.0, *t))
+            .filter(|(o, d, t)| ours.occluded((*o).into(), (*d).into(), 0.0, *t))
             .count();
         let b = t0.elapsed().as_secs_f64();
         assert_eq!(c, c2);
