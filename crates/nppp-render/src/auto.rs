@@ -34,7 +34,7 @@
 //! configurations within [`PilotOptions::tie`] of the best the cheapest
 //! wins ([`choose`]).
 //! Candidates are decided one estimator at a time, not by trying every
-//! combination. The pilot is 2-3% of a 64-spp render where PT is the
+//! combination. The pilot is 2-4% of a 64-spp render where PT is the
 //! cost, 6-8% on cornell-jade, where the estimator is 4x cheaper than PT.
 
 use crate::estimator::{EntryNee, EstimatorStats, Estimators};
