@@ -424,7 +424,16 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         attach_decoders(e, a.decoder)?;
     }
     let build = t0.elapsed().as_secs_f64();
-    let mut pilot_seconds = 0.0;
+    let opts = RenderOptions {
+        spp: settings.spp,
+        max_bounces: settings.max_bounces,
+        seed: settings.seed,
+        progress: !a.quiet,
+    };
+    // auto's pilot and confirmation pass (wall clock, both), and the plan
+    // the render follows.
+    let mut plan_seconds = 0.0;
+    let mut plan = None;
     let mut auto_choices = None;
     if auto && let Some(ests) = rs.estimators.take() {
         let names = estimator_names(&scene, &ests);
@@ -435,6 +444,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         // pilot's variance ratios are heavy-tailed (a caustic or a long
         // medium walk caught or missed) and tighten only with more samples:
         // a longer render can afford a pilot that sees more of them.
+        // Where it cannot tell, the confirmation pass renders halves of
+        // spp / 16 (1 to 8) of the image itself per configuration.
         // The scene's P is the contract's "used only once the path has made
         // at least P bounces": auto may choose a larger P, or none, never a
         // smaller one (and never 0 but for translucent objects, see
@@ -446,13 +457,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             max_bounces: settings.max_bounces,
             seed: settings.seed,
             spp: (settings.spp / 16).clamp(1, 16),
+            confirm_spp: (settings.spp / 16).clamp(1, 8),
             min_p,
             min_p_medium,
             max_p: defaults.max_p.max(min_p),
             ..defaults
         };
-        let (chosen, decision) = nppp_render::auto::decide(&mut rs, ests, &pilot);
-        rs.estimators = chosen;
+        let p = nppp_render::auto::plan(&mut rs, ests, &pilot, &opts);
+        let decision = &p.decision;
         auto_choices = Some(
             decision
                 .estimators
@@ -461,25 +473,47 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                 .collect::<Vec<_>>()
                 .join("; "),
         );
-        pilot_seconds = t.elapsed().as_secs_f64();
+        plan_seconds = t.elapsed().as_secs_f64();
         for line in decision.describe(&names) {
             eprintln!("auto: {line}");
         }
         eprintln!(
             "auto: pilot {:.2} s ({} samples at {}x{})",
-            pilot_seconds, decision.samples, decision.width, decision.height
+            p.pilot_seconds, decision.samples, decision.width, decision.height
         );
+        if let Some(last) = p.segments.last() {
+            let parts: Vec<String> = p
+                .segments
+                .iter()
+                .map(|s| {
+                    let what = match s.only {
+                        None => "PT".to_string(),
+                        Some((i, c)) => format!(
+                            "{} {}",
+                            names[i],
+                            nppp_render::auto::label(Some(c))
+                        ),
+                    };
+                    format!("{what} {}..{}", s.samples.start, s.samples.end)
+                })
+                .collect();
+            eprintln!(
+                "auto: confirmed at full resolution with samples 0..{} of {} ({}), {:.2} s, kept in the image",
+                last.samples.end,
+                settings.spp,
+                parts.join(", "),
+                p.confirmation_seconds()
+            );
+        }
+        plan = Some(p);
     }
-    let opts = RenderOptions {
-        spp: settings.spp,
-        max_bounces: settings.max_bounces,
-        seed: settings.seed,
-        progress: !a.quiet,
-    };
     if let Some(samples) = part_samples {
         // Read (the estimator files' hashes) before the render, not after it.
         let part_settings = part_settings(a, &scene, &rs, auto_choices)?;
-        let (film, stats) = nppp_render::render_film(&rs, &opts, samples.clone());
+        let (film, stats) = match &mut plan {
+            Some(p) => p.render_part(&mut rs, &opts, samples.clone()),
+            None => nppp_render::render_film(&rs, &opts, samples.clone()),
+        };
         let header = nppp_render::render_part::RenderPartHeader {
             renderer: nppp_render::render_part::renderer_id(),
             scene: a.scene.display().to_string(),
@@ -491,7 +525,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             max_bounces: settings.max_bounces,
             samples: [samples.start, samples.end],
             settings: part_settings,
-            seconds: stats.seconds + pilot_seconds,
+            seconds: stats.seconds + plan_seconds,
         };
         nppp_render::render_part::write_part(&a.out, &header, &film)?;
         eprintln!(
@@ -513,9 +547,15 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         );
         return Ok(());
     }
-    let (img, mut stats) = nppp_render::render(&rs, &opts);
-    // The pilot is part of the render's time.
-    stats.seconds += pilot_seconds;
+    let (img, mut stats) = match &mut plan {
+        Some(p) => p.render(&mut rs, &opts),
+        None => nppp_render::render(&rs, &opts),
+    };
+    // The pilot is part of the render's time (the confirmation's renders
+    // are counted in `stats`, as the image's samples they are).
+    if let Some(p) = &plan {
+        stats.seconds += plan_seconds - p.confirmation_seconds();
+    }
     image_io::write_exr(&img, &a.out).with_context(|| "writing the EXR")?;
     if let Some(p) = &a.png {
         let preview = image_io::Preview {

@@ -28,5 +28,5 @@ pub mod scene_data;
 pub mod surface;
 
 pub use image_io::Image;
-pub use render::{RenderOptions, RenderStats, render, render_film};
+pub use render::{RenderOptions, RenderStats, render, render_after, render_film};
 pub use scene_data::RenderScene;

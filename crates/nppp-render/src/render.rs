@@ -42,6 +42,16 @@ impl RenderStats {
     pub fn samples_per_second(&self) -> f64 {
         self.samples as f64 / self.seconds.max(1e-9)
     }
+
+    /// Adds another render's statistics (its time included): a render made
+    /// of several sample ranges counts all of them.
+    pub fn merge(&mut self, o: &RenderStats) {
+        self.seconds += o.seconds;
+        self.samples += o.samples;
+        self.dropped_samples += o.dropped_samples;
+        self.estimators.merge(&o.estimators);
+        self.work.merge(&o.work);
+    }
 }
 
 /// Renders `scene` into a new image.
@@ -56,7 +66,27 @@ impl RenderStats {
 /// the estimators would silently never be used.
 pub fn render(scene: &RenderScene, opts: &RenderOptions) -> (Image, RenderStats) {
     let mut img = Image::new(scene.camera.width, scene.camera.height);
-    let stats = render_into(scene, opts, 0..opts.spp, &mut img.pixels, PixelSum::mean);
+    let stats = render_into(scene, opts, 0..opts.spp, &mut img.pixels, |_, p| p.mean());
+    (img, stats)
+}
+
+/// Renders samples `samples` of every pixel on top of `before`, the film of
+/// samples rendered already (by other configurations: `--estimators auto`'s
+/// confirmation pass), into the image of all of them. The result is bit for
+/// bit the mean of the merged films, without a second full-resolution film.
+pub fn render_after(
+    scene: &RenderScene,
+    opts: &RenderOptions,
+    samples: Range<u32>,
+    before: &[PixelSum],
+) -> (Image, RenderStats) {
+    let mut img = Image::new(scene.camera.width, scene.camera.height);
+    assert_eq!(before.len(), img.pixels.len(), "film size");
+    let stats = render_into(scene, opts, samples, &mut img.pixels, |i, p| {
+        let mut all = before[i];
+        all.merge(p);
+        all.mean()
+    });
     (img, stats)
 }
 
@@ -72,18 +102,19 @@ pub fn render_film(
 ) -> (Vec<PixelSum>, RenderStats) {
     let (w, h) = (scene.camera.width, scene.camera.height);
     let mut film = vec![PixelSum::default(); w as usize * h as usize];
-    let stats = render_into(scene, opts, samples, &mut film, |p| *p);
+    let stats = render_into(scene, opts, samples, &mut film, |_, p| *p);
     (film, stats)
 }
 
 /// Renders samples `samples` of every pixel into `out` (row-major), each
-/// pixel's accumulated samples turned into an output value by `finish`.
+/// pixel's accumulated samples turned into an output value by `finish`
+/// (given the pixel's row-major index).
 fn render_into<T: Send>(
     scene: &RenderScene,
     opts: &RenderOptions,
     samples: Range<u32>,
     out: &mut [T],
-    finish: impl Fn(&PixelSum) -> T + Sync,
+    finish: impl Fn(usize, &PixelSum) -> T + Sync,
 ) -> RenderStats {
     if let Some(e) = &scene.estimators {
         let merged = e
@@ -156,7 +187,8 @@ fn render_into<T: Send>(
                 let tw = TILE.min(w - x0);
                 for (i, p) in film.iter().enumerate() {
                     let (x, y) = (x0 + i as u32 % tw, i as u32 / tw);
-                    band_pixels[(y * w + x) as usize] = finish(p);
+                    let i = (y * w + x) as usize;
+                    band_pixels[i] = finish(band * band_len + i, p);
                     dropped += p.dropped as u64;
                 }
             }

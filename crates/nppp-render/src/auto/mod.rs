@@ -46,6 +46,9 @@ use crate::scene_data::RenderScene;
 use crate::surface::SurfaceKind;
 use nppp_geom::rng::mix64;
 
+mod confirm;
+pub use confirm::{Plan, Segment, plan};
+
 /// The cost model, in units of one inner BVH node visit of a path's later
 /// rays (8 boxes tested; incoherent rays miss the cache). Fitted by
 /// `tools/fit_cost_model.py` (least squares on relative error) to the 8-wide
@@ -137,6 +140,24 @@ pub struct PilotOptions {
     /// and 2 cost 0.72x and 0.96x of PT's per sample where P = 0 is 4x
     /// more efficient: their halves were 40% of the pilot.
     pub hopeless_sigmas: f64,
+    /// Samples per pixel of each half of the confirmation pass ([`plan`]);
+    /// 0: none.
+    pub confirm_spp: u32,
+    /// An estimator goes to the confirmation pass unless the pilot is sure:
+    /// of off, where its efficiency with the variance ratio `confirm_sigmas`
+    /// standard errors lower (the pilot's, unshrunk) stays below 1; of on,
+    /// where with the ratio that much higher it still beats PT by
+    /// [`Self::margin`].
+    pub confirm_sigmas: f64,
+    /// Efficiency over PT's that the confirmation pass needs to turn an
+    /// estimator on. Lower than [`Self::margin`]: it measures the render's
+    /// own image, not a quarter-resolution one, and its samples are the
+    /// image's, so a near tie costs nothing whichever way it goes.
+    pub confirm_margin: f64,
+    /// Largest image (pixels) the confirmation pass runs for: it holds two
+    /// films of 104 bytes per pixel (218 MB at 1 Mpx). Larger images have
+    /// larger pilots.
+    pub confirm_max_pixels: u64,
 }
 
 impl Default for PilotOptions {
@@ -154,6 +175,10 @@ impl Default for PilotOptions {
             variance_ratio_prior: 0.35,
             tie: 1.15,
             hopeless_sigmas: 2.5,
+            confirm_spp: 4,
+            confirm_sigmas: 2.0,
+            confirm_margin: 1.05,
+            confirm_max_pixels: 1 << 21,
         }
     }
 }
@@ -264,6 +289,10 @@ pub struct EstimatorDecision {
     /// `None`: off.
     pub choice: Option<Choice>,
     pub trials: Vec<Trial>,
+    /// Where the pilot could not tell: the candidate measured again at the
+    /// render's full resolution by the confirmation pass ([`plan`]), which
+    /// then made `choice`.
+    pub confirmed: Option<Trial>,
 }
 
 #[derive(Clone, Debug)]
@@ -275,6 +304,18 @@ pub struct Decision {
     /// The pilot's image size.
     pub width: u32,
     pub height: u32,
+    /// The confirmation pass, if there was one ([`plan`]).
+    pub confirmation: Option<ConfirmationSummary>,
+}
+
+/// What the confirmation pass measured beside its candidates' trials.
+#[derive(Clone, Debug)]
+pub struct ConfirmationSummary {
+    /// PT's trial at full resolution.
+    pub pt: Trial,
+    /// Samples `0..samples` of every pixel were the confirmation's (and are
+    /// in the image).
+    pub samples: u32,
 }
 
 impl Decision {
@@ -311,6 +352,16 @@ impl Decision {
                     })
                     .collect::<Vec<_>>()
                     .join(", ");
+                if let (Some(t), Some(c)) = (&d.confirmed, &self.confirmation) {
+                    // Decided by the confirmation pass.
+                    return format!(
+                        "{name}: {}, {} {:.2}x PT's efficiency at full resolution ({}; pilot: {tried})",
+                        if d.choice.is_some() { label(d.choice) } else { "off".into() },
+                        label(t.choice),
+                        t.efficiency,
+                        t.against(&c.pt)
+                    );
+                }
                 let chosen = d
                     .trials
                     .iter()
@@ -400,9 +451,22 @@ struct Measured {
 /// are off (the render is then plain path tracing).
 pub fn decide(
     rs: &mut RenderScene,
-    mut ests: Estimators,
+    ests: Estimators,
     opts: &PilotOptions,
 ) -> (Option<Estimators>, Decision) {
+    let base = ests.per_instance.clone();
+    let (mut ests, decision) = pilot(rs, ests, opts);
+    configure_decided(&mut ests, &base, &decision);
+    (ests.any_in_use().then_some(ests), decision)
+}
+
+/// The pilot of [`decide`]: its decision, and `ests` with the instances
+/// they had (each estimator in the configuration it was last tried in).
+fn pilot(
+    rs: &mut RenderScene,
+    mut ests: Estimators,
+    opts: &PilotOptions,
+) -> (Estimators, Decision) {
     let camera = rs.camera;
     // A pilot smaller than the image it decides for, but at least 16 pixels
     // on its short side.
@@ -436,13 +500,8 @@ pub fn decide(
     let whole = 0..opts.spp;
 
     let base_instances = ests.per_instance.clone();
-    // Estimator `index` alone, in configuration `choice`.
     let configure = |ests: &mut Estimators, index: usize, choice: Choice| {
-        ests.per_instance = base_instances
-            .iter()
-            .map(|e| e.filter(|&i| i as usize == index))
-            .collect();
-        ests.configure_one(index, Some((choice.min_bounces, choice.entry_nee)));
+        configure_alone(ests, &base_instances, index, choice)
     };
     // PT's two halves.
     let (fa, ca, na) = run(rs, seeds[0], whole.clone());
@@ -469,64 +528,16 @@ pub fn decide(
         }
     }
 
-    // The error's normalization, as relMSE's reference: the mean of all
-    // the pilot's renders (PT's halves and each measured candidate's),
-    // blurred over 5 x 5 pixels. Unblurred, a few spp miss what is rare
-    // (light seen through glass), and any pixel the reference missed would
-    // make an answer there look like a huge error; made of one
-    // configuration's renders, its fireflies would normalize themselves
-    // away, while in the mean of all of them (and blurred) a firefly weighs
-    // 1 / (25 x renders) of itself. (A PT render of its own served before,
-    // at a third of PT's pilot cost.) While candidates are still being
-    // measured, the mean of those rendered so far serves.
-    let normalization = |renders: &[&Image]| {
-        let mut mean = vec![[0.0f32; 3]; pa.pixels.len()];
-        for img in renders {
-            for (m, p) in mean.iter_mut().zip(&img.pixels) {
-                for c in 0..3 {
-                    // The film drops non-finite samples; a broken pilot
-                    // render still must not make every error NaN.
-                    if p[c].is_finite() {
-                        m[c] += p[c] / renders.len() as f32;
-                    }
-                }
-            }
-        }
-        blur(&mean, width as usize, 2)
-    };
+    // The error's normalization: see [`normalization`]. While candidates
+    // are still being measured, the mean of those rendered so far serves.
+    let normalization = |renders: &[&Image]| normalization(renders, width);
     // PT's halves and every measured candidate's.
     fn renders<'a>(pt: [&'a Image; 2], measured: &'a [Measured]) -> Vec<&'a Image> {
         pt.into_iter()
             .chain(measured.iter().flat_map(|m| [&m.a, &m.b]))
             .collect()
     }
-    let trial = |norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: f64| {
-        let (mean, mean_var) = mean_and_variance(a, b);
-        let pixel_rel_var = pixel_rel_var(a, b, norm);
-        let (rel_var, rel_var_se) = mean_and_standard_error(&pixel_rel_var);
-        Trial {
-            choice,
-            rel_var,
-            rel_var_se,
-            pixel_rel_var,
-            cost,
-            efficiency: 1.0,
-            mean,
-            mean_var,
-            biased: false,
-            skipped: false,
-        }
-    };
-    // Bias test and efficiency against PT's trial.
-    let score = |pt: &Trial, t: &mut Trial| {
-        let noise = 4.0 * (t.mean_var + pt.mean_var).sqrt();
-        t.biased = (t.mean - pt.mean).abs() > noise + opts.bias_tolerance * pt.mean.abs();
-        t.efficiency = if t.biased {
-            0.0
-        } else {
-            efficiency(pt, t, opts.variance_ratio_prior)
-        };
-    };
+    let score = |pt: &Trial, t: &mut Trial| score(pt, t, opts);
 
     // Per estimator, its candidates from the cheapest up: each gets the
     // rest of its first half and its second half, unless even a variance
@@ -603,22 +614,97 @@ pub fn decide(
             index,
             choice,
             trials,
+            confirmed: None,
         });
     }
     rs.camera = camera;
-    // The decided configuration.
     ests.per_instance = base_instances;
-    for d in &decisions {
-        ests.configure_one(d.index, d.choice.map(|c| (c.min_bounces, c.entry_nee)));
-    }
     let decision = Decision {
         pt,
         estimators: decisions,
         samples,
         width,
         height,
+        confirmation: None,
     };
-    (ests.any_in_use().then_some(ests), decision)
+    (ests, decision)
+}
+
+/// Estimator `index` alone (its instances; the others' traced as plain
+/// geometry), in configuration `choice`. `base`: every instance's
+/// estimator as loaded.
+fn configure_alone(ests: &mut Estimators, base: &[Option<u32>], index: usize, choice: Choice) {
+    ests.per_instance = base
+        .iter()
+        .map(|e| e.filter(|&i| i as usize == index))
+        .collect();
+    ests.configure_one(index, Some((choice.min_bounces, choice.entry_nee)));
+}
+
+/// Every estimator as `decision` chose (off ones' instances traced as
+/// plain geometry).
+fn configure_decided(ests: &mut Estimators, base: &[Option<u32>], decision: &Decision) {
+    ests.per_instance = base.to_vec();
+    for d in &decision.estimators {
+        ests.configure_one(d.index, d.choice.map(|c| (c.min_bounces, c.entry_nee)));
+    }
+}
+
+/// The error's normalization, as relMSE's reference: the mean of
+/// `renders` (PT's halves and each measured candidate's), blurred over
+/// 5 x 5 pixels. Unblurred, a few spp miss what is rare (light seen through
+/// glass), and any pixel the reference missed would make an answer there
+/// look like a huge error; made of one configuration's renders, its
+/// fireflies would normalize themselves away, while in the mean of all of
+/// them (and blurred) a firefly weighs 1 / (25 x renders) of itself. (A PT
+/// render of its own served before, at a third of PT's pilot cost.)
+fn normalization(renders: &[&Image], width: u32) -> Vec<[f32; 3]> {
+    let len = renders.first().map_or(0, |r| r.pixels.len());
+    let mut mean = vec![[0.0f32; 3]; len];
+    for img in renders {
+        for (m, p) in mean.iter_mut().zip(&img.pixels) {
+            for c in 0..3 {
+                // The film drops non-finite samples; a broken pilot
+                // render still must not make every error NaN.
+                if p[c].is_finite() {
+                    m[c] += p[c] / renders.len() as f32;
+                }
+            }
+        }
+    }
+    blur(&mean, width as usize, 2)
+}
+
+/// A configuration's measurement from its two halves `a` and `b`, against
+/// the normalization `norm`, with its counted `cost` per sample (not yet
+/// scored: see [`score`]).
+fn trial(norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: f64) -> Trial {
+    let (mean, mean_var) = mean_and_variance(a, b);
+    let pixel_rel_var = pixel_rel_var(a, b, norm);
+    let (rel_var, rel_var_se) = mean_and_standard_error(&pixel_rel_var);
+    Trial {
+        choice,
+        rel_var,
+        rel_var_se,
+        pixel_rel_var,
+        cost,
+        efficiency: 1.0,
+        mean,
+        mean_var,
+        biased: false,
+        skipped: false,
+    }
+}
+
+/// Bias test and efficiency of `t` against PT's trial.
+fn score(pt: &Trial, t: &mut Trial, opts: &PilotOptions) {
+    let noise = 4.0 * (t.mean_var + pt.mean_var).sqrt();
+    t.biased = (t.mean - pt.mean).abs() > noise + opts.bias_tolerance * pt.mean.abs();
+    t.efficiency = if t.biased {
+        0.0
+    } else {
+        efficiency(pt, t, opts.variance_ratio_prior)
+    };
 }
 
 /// The configuration to use among one estimator's trials, `None` for off:
