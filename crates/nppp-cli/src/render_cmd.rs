@@ -444,8 +444,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         // pilot's variance ratios are heavy-tailed (a caustic or a long
         // medium walk caught or missed) and tighten only with more samples:
         // a longer render can afford a pilot that sees more of them.
-        // Where it cannot tell, the confirmation pass renders halves of
-        // spp / 16 (1 to 8) of the image itself per configuration.
+        // Where it cannot tell, the confirmation pass renders up to four
+        // rounds of two halves of spp / 64 (1 to 4) of the image itself per
+        // configuration: 8 samples each for a 64-spp render, at most 32.
         // The scene's P is the contract's "used only once the path has made
         // at least P bounces": auto may choose a larger P, or none, never a
         // smaller one (and never 0 but for translucent objects, see
@@ -457,7 +458,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             max_bounces: settings.max_bounces,
             seed: settings.seed,
             spp: (settings.spp / 16).clamp(1, 16),
-            confirm_spp: (settings.spp / 16).clamp(1, 8),
+            confirm_spp: (settings.spp / 64).clamp(1, 4),
             min_p,
             min_p_medium,
             max_p: defaults.max_p.max(min_p),
@@ -481,7 +482,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             "auto: pilot {:.2} s ({} samples at {}x{})",
             p.pilot_seconds, decision.samples, decision.width, decision.height
         );
-        if let Some(last) = p.segments.last() {
+        if !p.segments.is_empty() {
             let parts: Vec<String> = p
                 .segments
                 .iter()
@@ -494,12 +495,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                             nppp_render::auto::label(Some(c))
                         ),
                     };
-                    format!("{what} {}..{}", s.samples.start, s.samples.end)
+                    format!("{what} {} spp", s.sample_count())
                 })
                 .collect();
             eprintln!(
                 "auto: confirmed at full resolution with samples 0..{} of {} ({}), {:.2} s, kept in the image",
-                last.samples.end,
+                p.rest_start(),
                 settings.spp,
                 parts.join(", "),
                 p.confirmation_seconds()

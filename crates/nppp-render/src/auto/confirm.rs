@@ -26,7 +26,7 @@
 
 use super::{
     Choice, Decision, EstimatorDecision, PilotOptions, Trial, configure_alone, configure_decided,
-    normalization, pilot, score, trial, work_cost,
+    normalization, pilot, score, work_cost,
 };
 use crate::estimator::Estimators;
 use crate::film::{PixelSum, film_image};
@@ -36,14 +36,22 @@ use crate::scene_data::RenderScene;
 use std::ops::Range;
 use std::time::Instant;
 
-/// Samples of every pixel rendered by the confirmation pass in one
-/// configuration (both halves), kept for the image.
+/// The samples of every pixel one configuration rendered in the confirmation
+/// pass (all its rounds), kept for the image.
 pub struct Segment {
-    pub samples: Range<u32>,
+    /// Its sample ranges, one per round it took part in.
+    pub samples: Vec<Range<u32>>,
     /// `None`: plain PT; otherwise estimator `.0` alone, in configuration `.1`.
     pub only: Option<(usize, Choice)>,
     film: Vec<PixelSum>,
     stats: RenderStats,
+}
+
+impl Segment {
+    /// Samples per pixel, all rounds.
+    pub fn sample_count(&self) -> u32 {
+        self.samples.iter().map(|r| r.end - r.start).sum()
+    }
 }
 
 /// What `--estimators auto` renders: the decision, and the samples the
@@ -57,6 +65,7 @@ pub struct Plan {
     estimators: Option<Estimators>,
     /// Every instance's estimator as loaded.
     base: Vec<Option<u32>>,
+    /// PT's first, then each confirmed estimator's.
     pub segments: Vec<Segment>,
     /// Seconds of the pilot (the confirmation's renders are the image's
     /// and counted with it).
@@ -91,23 +100,28 @@ pub fn plan(
         segments: Vec::new(),
         pilot_seconds: t.elapsed().as_secs_f64(),
     };
-    let h = opts.confirm_spp;
-    let pixels = rs.camera.width as u64 * rs.camera.height as u64;
-    let fits = if h == 0 || pixels > opts.confirm_max_pixels {
-        0
-    } else {
-        (render.spp / 2 / (2 * h)).saturating_sub(1) as usize
-    };
-    let mut unsure: Vec<(usize, Choice)> = plan
+    let unsure: Vec<(usize, Choice)> = plan
         .decision
         .estimators
         .iter()
         .enumerate()
         .filter_map(|(k, d)| unsure_candidate(&plan.decision.pt, d, opts).map(|c| (k, c)))
         .collect();
-    unsure.truncate(fits);
-    if !unsure.is_empty() {
-        plan.confirm(rs, &unsure, opts, render);
+    let h = opts.confirm_spp;
+    let pixels = rs.camera.width as u64 * rs.camera.height as u64;
+    if h > 0 && pixels <= opts.confirm_max_pixels && !unsure.is_empty() {
+        // Rounds of two halves per configuration, PT's and each unsure
+        // estimator's, within half of the render's samples: as many
+        // estimators as get at least one round.
+        let per_round = |n: usize| 2 * h * (1 + n as u32);
+        let n = (0..=unsure.len())
+            .rev()
+            .find(|&n| per_round(n) <= render.spp / 2)
+            .unwrap_or(0);
+        let rounds = (render.spp / 2 / per_round(n.max(1))).min(opts.confirm_rounds);
+        if n > 0 && rounds > 0 {
+            plan.confirm(rs, &unsure[..n], rounds, opts, render);
+        }
     }
     plan.install(rs, Config::Decided);
     plan
@@ -144,14 +158,106 @@ fn efficiency_bounds(pt: &Trial, t: &Trial, sigmas: f64) -> (f64, f64) {
     }
 }
 
+/// Per pixel, the sums of a configuration's half images (each of `spp`
+/// samples) and of their squares: its variance per sample from all its
+/// halves (`halves - 1` degrees of freedom per pixel, where the pilot's two
+/// halves give one).
+struct Halves {
+    spp: u32,
+    halves: u32,
+    sum: Vec<[f64; 3]>,
+    sum_sq: Vec<[f64; 3]>,
+}
+
+impl Halves {
+    fn new(pixels: usize, spp: u32) -> Self {
+        Self {
+            spp,
+            halves: 0,
+            sum: vec![[0.0; 3]; pixels],
+            sum_sq: vec![[0.0; 3]; pixels],
+        }
+    }
+
+    fn add(&mut self, img: &Image) {
+        self.halves += 1;
+        for ((s, q), p) in self.sum.iter_mut().zip(&mut self.sum_sq).zip(&img.pixels) {
+            for c in 0..3 {
+                let v = if p[c].is_finite() { p[c] as f64 } else { 0.0 };
+                s[c] += v;
+                q[c] += v * v;
+            }
+        }
+    }
+
+    /// The mean of the halves (for the normalization).
+    fn mean(&self, width: u32, height: u32) -> Image {
+        let mut img = Image::new(width, height);
+        let k = self.halves.max(1) as f64;
+        for (o, s) in img.pixels.iter_mut().zip(&self.sum) {
+            *o = s.map(|v| (v / k) as f32);
+        }
+        img
+    }
+
+    /// Its trial against the normalization `norm`, as [`super::trial`]
+    /// measures the pilot's two halves, but per sample: configurations that
+    /// stopped after different rounds compare.
+    fn trial(&self, norm: &[[f32; 3]], choice: Option<Choice>, cost: f64) -> Trial {
+        let k = self.halves as f64;
+        let n = self.sum.len().max(1) as f64;
+        let (mut total, mut mean_var) = (0.0f64, 0.0f64);
+        let pixel_rel_var: Vec<f64> = self
+            .sum
+            .iter()
+            .zip(&self.sum_sq)
+            .zip(norm)
+            .map(|((s, q), r)| {
+                let mut pixel = 0.0f64;
+                for c in 0..3 {
+                    // The variance of one half's mean, unbiased.
+                    let var_half = ((q[c] - s[c] * s[c] / k) / (k - 1.0)).max(0.0);
+                    let r = r[c] as f64;
+                    pixel += var_half * self.spp as f64 / (r * r + 0.01) / 3.0;
+                    total += s[c] / k;
+                    mean_var += var_half / k;
+                }
+                pixel
+            })
+            .collect();
+        let (rel_var, rel_var_se) = super::mean_and_standard_error(&pixel_rel_var);
+        let channels = 3.0 * n;
+        Trial {
+            choice,
+            rel_var,
+            rel_var_se,
+            pixel_rel_var,
+            cost,
+            efficiency: 1.0,
+            mean: total / channels,
+            mean_var: mean_var / (channels * channels),
+            biased: false,
+            skipped: false,
+        }
+    }
+}
+
 impl Plan {
-    /// Renders PT's segment and one per `unsure` estimator (its position in
-    /// the decision, its candidate), measures them as the pilot measures
-    /// its renders, and decides those estimators.
+    /// Renders, in up to `rounds` rounds, two halves of PT and of each
+    /// `unsure` estimator's candidate (its position in the decision, its
+    /// candidate), measures them as the pilot measures its renders, and
+    /// decides those estimators: on where even the variance ratio
+    /// [`PilotOptions::confirm_stop_sigmas`] standard errors worse beats PT by
+    /// [`PilotOptions::confirm_margin`], off where even that much better
+    /// does not, and after the last round by the measured efficiency. An
+    /// estimator decided early renders no more rounds (a loser measured at
+    /// full resolution is off after one: its samples in the image are a
+    /// loser's), and PT stops when all are decided.
     fn confirm(
         &mut self,
         rs: &mut RenderScene,
         unsure: &[(usize, Choice)],
+        rounds: u32,
         opts: &PilotOptions,
         render: &RenderOptions,
     ) {
@@ -161,8 +267,7 @@ impl Plan {
             ..*render
         };
         let (width, height) = (rs.camera.width, rs.camera.height);
-        // Each configuration's two halves, as images, and its cost per sample.
-        let mut measured: Vec<(Image, Image, f64)> = Vec::new();
+        let pixels = width as usize * height as usize;
         let configs: Vec<Option<(usize, Choice)>> = std::iter::once(None)
             .chain(
                 unsure
@@ -170,40 +275,75 @@ impl Plan {
                     .map(|&(k, c)| Some((self.decision.estimators[k].index, c))),
             )
             .collect();
-        for (n, only) in configs.into_iter().enumerate() {
-            let start = 2 * h * n as u32;
-            self.install(rs, Config::Segment(only));
-            let (mut film, a_stats) = render_film(rs, &ropts, start..start + h);
-            let (second, b_stats) = render_film(rs, &ropts, start + h..start + 2 * h);
-            let a = film_image(width, height, &film);
-            let b = film_image(width, height, &second);
-            for (f, p) in film.iter_mut().zip(&second) {
-                f.merge(p);
-            }
-            let mut stats = a_stats;
-            stats.merge(&b_stats);
-            let cost =
-                work_cost(&stats.work, &stats.estimators) / stats.samples.max(1) as f64;
-            measured.push((a, b, cost));
-            self.segments.push(Segment {
-                samples: start..start + 2 * h,
+        let mut halves: Vec<Halves> = configs.iter().map(|_| Halves::new(pixels, h)).collect();
+        self.segments = configs
+            .iter()
+            .map(|&only| Segment {
+                samples: Vec::new(),
                 only,
-                film,
-                stats,
-            });
+                film: vec![PixelSum::default(); pixels],
+                stats: RenderStats::default(),
+            })
+            .collect();
+        // Per unsure estimator: decided yet?
+        let mut decided = vec![false; unsure.len()];
+        let mut next = 0u32;
+        let mut pt = None;
+        for round in 0..rounds {
+            for (c, &only) in configs.iter().enumerate() {
+                if c > 0 && decided[c - 1] {
+                    continue;
+                }
+                self.install(rs, Config::Segment(only));
+                let seg = &mut self.segments[c];
+                seg.samples.push(next..next + 2 * h);
+                for _ in 0..2 {
+                    let (film, stats) = render_film(rs, &ropts, next..next + h);
+                    halves[c].add(&film_image(width, height, &film));
+                    for (f, p) in seg.film.iter_mut().zip(&film) {
+                        f.merge(p);
+                    }
+                    seg.stats.merge(&stats);
+                    next += h;
+                }
+            }
+            let means: Vec<Image> = halves.iter().map(|x| x.mean(width, height)).collect();
+            let norm = normalization(&means.iter().collect::<Vec<_>>(), width);
+            let cost = |seg: &Segment| {
+                work_cost(&seg.stats.work, &seg.stats.estimators)
+                    / seg.stats.samples.max(1) as f64
+            };
+            let pt_trial = halves[0].trial(&norm, None, cost(&self.segments[0]));
+            let last = round + 1 == rounds;
+            for (u, &(k, choice)) in unsure.iter().enumerate() {
+                if decided[u] {
+                    continue;
+                }
+                let mut t = halves[u + 1].trial(&norm, Some(choice), cost(&self.segments[u + 1]));
+                score(&pt_trial, &mut t, opts);
+                let (low, high) = efficiency_bounds(&pt_trial, &t, opts.confirm_stop_sigmas);
+                let on = if t.biased || high < opts.confirm_margin {
+                    Some(false)
+                } else if low >= opts.confirm_margin {
+                    Some(true)
+                } else if last {
+                    Some(t.efficiency >= opts.confirm_margin)
+                } else {
+                    None
+                };
+                let d = &mut self.decision.estimators[k];
+                if let Some(on) = on {
+                    decided[u] = true;
+                    d.choice = on.then_some(choice);
+                }
+                d.confirmed = Some(t);
+            }
+            pt = Some(pt_trial);
+            if decided.iter().all(|&d| d) {
+                break;
+            }
         }
-        let images: Vec<&Image> = measured.iter().flat_map(|(a, b, _)| [a, b]).collect();
-        let norm = normalization(&images, width);
-        let (pa, pb, pt_cost) = &measured[0];
-        let pt = trial(&norm, None, pa, pb, *pt_cost);
-        for (&(k, choice), (a, b, cost)) in unsure.iter().zip(&measured[1..]) {
-            let mut t = trial(&norm, Some(choice), a, b, *cost);
-            score(&pt, &mut t, opts);
-            let d = &mut self.decision.estimators[k];
-            d.choice = (t.efficiency >= opts.confirm_margin).then_some(choice);
-            d.confirmed = Some(t);
-        }
-        self.decision.confirmation = Some(super::ConfirmationSummary {
+        self.decision.confirmation = pt.map(|pt| super::ConfirmationSummary {
             pt,
             samples: self.rest_start(),
         });
@@ -211,7 +351,12 @@ impl Plan {
 
     /// The first sample of every pixel rendered in the decided configuration.
     pub fn rest_start(&self) -> u32 {
-        self.segments.last().map_or(0, |s| s.samples.end)
+        self.segments
+            .iter()
+            .flat_map(|s| &s.samples)
+            .map(|r| r.end)
+            .max()
+            .unwrap_or(0)
     }
 
     /// Seconds the confirmation pass's renders took.
@@ -268,9 +413,9 @@ impl Plan {
 
     /// The film of samples `range` (a render part, `--shard`/`--samples`):
     /// bit for bit the same samples [`Plan::render`] renders there. A
-    /// confirmation segment inside the range is reused (its seconds are the
-    /// plan's, not the part's); one the range cuts is rendered again for its
-    /// share.
+    /// configuration's confirmation samples all inside the range are reused
+    /// (their seconds are the plan's, not the part's); those the range cuts
+    /// are rendered again for its share.
     pub fn render_part(
         &mut self,
         rs: &mut RenderScene,
@@ -287,22 +432,23 @@ impl Plan {
             stats.merge(st);
         };
         for k in 0..self.segments.len() {
-            let s = &self.segments[k].samples;
-            let (a, b) = (s.start.max(range.start), s.end.min(range.end));
-            if a >= b {
-                continue;
-            }
-            if (a, b) == (s.start, s.end) {
+            let inside = |r: &Range<u32>| range.start <= r.start && r.end <= range.end;
+            if self.segments[k].samples.iter().all(inside) {
                 let seg = &self.segments[k];
                 let st = RenderStats {
                     seconds: 0.0,
                     ..seg.stats.clone()
                 };
                 add(&mut film, &seg.film, &st);
-            } else {
-                self.install(rs, Config::Segment(self.segments[k].only));
-                let (part, st) = render_film(rs, opts, a..b);
-                add(&mut film, &part, &st);
+                continue;
+            }
+            self.install(rs, Config::Segment(self.segments[k].only));
+            for r in self.segments[k].samples.clone() {
+                let (a, b) = (r.start.max(range.start), r.end.min(range.end));
+                if a < b {
+                    let (part, st) = render_film(rs, opts, a..b);
+                    add(&mut film, &part, &st);
+                }
             }
         }
         self.install(rs, Config::Decided);
