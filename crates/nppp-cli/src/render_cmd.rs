@@ -81,6 +81,15 @@ pub struct RenderArgs {
     /// vertices (so far only `--estimators oracle`). `off`: the thesis.
     #[arg(long, value_enum, default_value_t = EntryNeeChoice::Off)]
     pub entry_nee: EntryNeeChoice,
+    /// With --estimators auto: where the pilot cannot tell whether an
+    /// estimator pays, decide by a confirmation pass at the render's own
+    /// resolution whose samples are the image's first ones (up to two rounds
+    /// of two halves of spp / 32 per configuration). Surer decisions, at a
+    /// price: at 64 spp it cost the glass scenes' winners 5-8% of their
+    /// time and the losers up to 6% (BENCHMARKS.md, "auto"), so it is off
+    /// by default.
+    #[arg(long)]
+    pub auto_confirm: bool,
     /// How an estimator entry reads the latent grid: quadrilinear
     /// interpolation of 16 corners, or one corner picked with the
     /// probability of its weight (stochastic filtering, one memory access).
@@ -397,6 +406,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         );
     }
     let auto = a.estimators == EstimatorChoice::Auto;
+    if a.auto_confirm && !auto {
+        bail!("--auto-confirm confirms what --estimators auto decides: give --estimators auto (the default)");
+    }
     if auto && (a.min_bounces.is_some() || a.entry_nee != EntryNeeChoice::Off) {
         bail!(
             "--estimators auto chooses P and the entry NEE itself; give --estimators neural \
@@ -444,9 +456,10 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         // pilot's variance ratios are heavy-tailed (a caustic or a long
         // medium walk caught or missed) and tighten only with more samples:
         // a longer render can afford a pilot that sees more of them.
-        // Where it cannot tell, the confirmation pass renders up to four
-        // rounds of two halves of spp / 64 (1 to 4) of the image itself per
-        // configuration: 8 samples each for a 64-spp render, at most 32.
+        // With --auto-confirm, where it cannot tell, the confirmation pass
+        // renders up to two rounds of two halves of spp / 32 (1 to 8) of the
+        // image itself per configuration: 8 samples each for a 64-spp
+        // render, at most 32.
         // The scene's P is the contract's "used only once the path has made
         // at least P bounces": auto may choose a larger P, or none, never a
         // smaller one (and never 0 but for translucent objects, see
@@ -458,7 +471,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             max_bounces: settings.max_bounces,
             seed: settings.seed,
             spp: (settings.spp / 16).clamp(1, 16),
-            confirm_spp: (settings.spp / 64).clamp(1, 4),
+            confirm_spp: if a.auto_confirm {
+                (settings.spp / 32).clamp(1, 8)
+            } else {
+                0
+            },
             min_p,
             min_p_medium,
             max_p: defaults.max_p.max(min_p),

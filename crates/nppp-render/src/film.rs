@@ -123,10 +123,12 @@ pub struct PixelSum {
 /// The image of a row-major film `width` pixels wide: every pixel's mean,
 /// as [`crate::render`] computes it.
 pub fn film_image(width: u32, height: u32, film: &[PixelSum]) -> crate::Image {
+    use rayon::prelude::*;
     let mut img = crate::Image::new(width, height);
-    for (o, p) in img.pixels.iter_mut().zip(film) {
-        *o = p.mean();
-    }
+    img.pixels
+        .par_iter_mut()
+        .zip(film)
+        .for_each(|(o, p)| *o = p.mean());
     img
 }
 

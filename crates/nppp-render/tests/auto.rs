@@ -8,7 +8,9 @@
 mod common;
 use common::*;
 use nppp_render::RenderScene;
-use nppp_render::auto::{Decision, EstimatorDecision, PilotOptions, Trial, decide};
+use nppp_render::auto::{Decision, EstimatorDecision, PilotOptions, Trial, decide, plan};
+use nppp_render::film::{PixelSum, film_image};
+use nppp_render::{Image, RenderOptions};
 use nppp_render::estimator::{EstimatorMode, Estimators};
 
 /// The scene `name` of data/scenes, `width` pixels wide (0: as it is).
@@ -142,4 +144,67 @@ fn a_configuration_that_cannot_win_is_not_measured_twice() {
     let pixels = (d.width * d.height) as u64;
     let per_half = pixels * opts.spp as u64;
     assert!(d.samples <= 6 * per_half + pixels, "{} samples", d.samples);
+}
+
+/// The confirmation pass ([`plan`]), forced on (every candidate counts as
+/// unsure): its samples are the image's own, so the plan's image is the
+/// same bits at any thread count and when rendered in parts over any split
+/// of the sample range; and measured at the render's own resolution, the
+/// default scene's losing knot stays off.
+#[test]
+fn the_confirmation_pass_renders_the_image_s_own_samples_and_keeps_a_loser_off() {
+    let scene = load("cornell-box.json", 64);
+    let render = RenderOptions {
+        spp: 16,
+        max_bounces: 5,
+        seed: 3,
+        progress: false,
+    };
+    let opts = PilotOptions {
+        max_bounces: 5,
+        seed: 3,
+        spp: 1,
+        confirm_spp: 1,
+        // No pilot measurement is sure at these bounds: confirm all.
+        confirm_sigmas: 1e3,
+        ..Default::default()
+    };
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut rs = RenderScene::for_estimators(&scene);
+            let ests = Estimators::load(&scene, EstimatorMode::Neural, 0)
+                .unwrap()
+                .unwrap();
+            let mut p = plan(&mut rs, ests, &opts, &render);
+            let (img, stats) = p.render(&mut rs, &render);
+            assert_eq!(stats.samples, 64 * 64 * 16, "every sample once");
+            // Parts that cut the confirmation's segments and the rest.
+            let mut film = vec![PixelSum::default(); 64 * 64];
+            for range in [0..3, 3..9, 9..16] {
+                let (part, _) = p.render_part(&mut rs, &render, range);
+                for (f, x) in film.iter_mut().zip(&part) {
+                    f.merge(x);
+                }
+            }
+            (p.decision.clone(), p.rest_start(), img, film_image(64, 64, &film))
+        })
+    };
+    let (d, rest, one, parts) = run(1);
+    let (d2, _, two, _) = run(2);
+    let knot = &d.estimators[0];
+    let confirmed = knot.confirmed.as_ref().expect("confirmed");
+    assert!(d.confirmation.is_some());
+    assert!(rest > 0 && rest <= render.spp / 2, "confirmation samples 0..{rest}");
+    assert_eq!(knot.choice, None, "{confirmed:?}");
+    assert!(confirmed.efficiency < 1.0, "{confirmed:?}");
+    assert_eq!(d2.estimators[0].confirmed.as_ref().unwrap().rel_var, confirmed.rel_var);
+    let bits = |img: &Image| -> Vec<u32> {
+        img.pixels.iter().flatten().map(|v| v.to_bits()).collect()
+    };
+    assert!(bits(&one) == bits(&two), "the image depends on the thread count");
+    assert!(bits(&one) == bits(&parts), "render parts differ from the image");
 }

@@ -141,16 +141,15 @@ pub struct PilotOptions {
     /// more efficient: their halves were 40% of the pilot.
     pub hopeless_sigmas: f64,
     /// Samples per pixel of each half of a confirmation round ([`plan`]);
-    /// 0: no confirmation.
+    /// 0 (the default): no confirmation.
     pub confirm_spp: u32,
     /// Most rounds of the confirmation pass (each: two halves per
     /// configuration still undecided).
     pub confirm_rounds: u32,
-    /// An estimator goes to the confirmation pass unless the pilot is sure:
-    /// of off, where its efficiency with the variance ratio `confirm_sigmas`
-    /// standard errors lower (the pilot's, unshrunk) stays below 1; of on,
-    /// where with the ratio that much higher it still beats PT by
-    /// [`Self::margin`].
+    /// An estimator goes to the confirmation pass unless the pilot is sure
+    /// that it does not beat PT by [`Self::margin`] even with its variance
+    /// ratio `confirm_sigmas` posterior standard deviations lower, or that
+    /// it does even with the ratio that much higher.
     pub confirm_sigmas: f64,
     /// A confirmation round decides before the last one only where the
     /// variance ratio this many standard errors worse still beats
@@ -159,7 +158,7 @@ pub struct PilotOptions {
     /// one round of 1-spp halves a firefly or two make it (at 2,
     /// cornell-glass's estimator, 1.2x PT's efficiency, was turned off
     /// after one round at one seed of 8, measured at 0.77x +-15%), while a
-    /// loser's further rounds cost little (two samples per pixel each).
+    /// loser's further rounds cost little (a few samples per pixel).
     pub confirm_stop_sigmas: f64,
     /// Efficiency over PT's that the confirmation pass needs to turn an
     /// estimator on. Lower than [`Self::margin`]: it measures the render's
@@ -187,8 +186,8 @@ impl Default for PilotOptions {
             variance_ratio_prior: 0.35,
             tie: 1.15,
             hopeless_sigmas: 2.5,
-            confirm_spp: 1,
-            confirm_rounds: 4,
+            confirm_spp: 0,
+            confirm_rounds: 2,
             confirm_sigmas: 2.0,
             confirm_stop_sigmas: 3.0,
             confirm_margin: 1.05,
@@ -748,13 +747,15 @@ fn choose(trials: &[Trial], opts: &PilotOptions) -> Option<Choice> {
 }
 
 /// Box blur of a row-major image `width` pixels wide over (2r + 1)^2 pixels
-/// (clipped at the borders).
+/// (clipped at the borders). Rows in parallel: the confirmation pass blurs
+/// the full-resolution image after each round.
 fn blur(img: &[[f32; 3]], width: usize, r: usize) -> Vec<[f32; 3]> {
+    use rayon::prelude::*;
     let width = width.max(1);
     let height = img.len() / width;
     let mut out = vec![[0.0f32; 3]; img.len()];
-    for y in 0..height {
-        for x in 0..width {
+    out.par_chunks_mut(width).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
             let mut s = [0.0f64; 3];
             let mut n = 0.0f64;
             for yy in y.saturating_sub(r)..(y + r + 1).min(height) {
@@ -766,9 +767,9 @@ fn blur(img: &[[f32; 3]], width: usize, r: usize) -> Vec<[f32; 3]> {
                     n += 1.0;
                 }
             }
-            out[y * width + x] = [(s[0] / n) as f32, (s[1] / n) as f32, (s[2] / n) as f32];
+            *o = [(s[0] / n) as f32, (s[1] / n) as f32, (s[2] / n) as f32];
         }
-    }
+    });
     out
 }
 
