@@ -564,11 +564,12 @@ mod tests {
             unsure_candidate(&pt, &coin, &opts).map(|c| c.min_bounces),
             Some(1)
         );
-        // Unusable: never.
+        // Unusable (its image mean is wrong): never.
         let biased = decided(Trial {
-            biased: true,
+            mean: 0.5,
             ..trial(0.8, 0.3, 0.97, Some(1))
         });
+        assert!(biased.trials[0].biased);
         assert_eq!(unsure_candidate(&pt, &biased, &opts), None);
     }
 }
