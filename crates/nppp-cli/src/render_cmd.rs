@@ -407,7 +407,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     }
     let auto = a.estimators == EstimatorChoice::Auto;
     if a.auto_confirm && !auto {
-        bail!("--auto-confirm confirms what --estimators auto decides: give --estimators auto (the default)");
+        bail!(
+            "--auto-confirm confirms what --estimators auto decides: give --estimators auto (the default)"
+        );
     }
     if auto && (a.min_bounces.is_some() || a.entry_nee != EntryNeeChoice::Off) {
         bail!(
@@ -506,11 +508,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                 .map(|s| {
                     let what = match s.only {
                         None => "PT".to_string(),
-                        Some((i, c)) => format!(
-                            "{} {}",
-                            names[i],
-                            nppp_render::auto::label(Some(c))
-                        ),
+                        Some((i, c)) => {
+                            format!("{} {}", names[i], nppp_render::auto::label(Some(c)))
+                        }
                     };
                     format!("{what} {} spp", s.sample_count())
                 })

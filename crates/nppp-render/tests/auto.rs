@@ -9,9 +9,9 @@ mod common;
 use common::*;
 use nppp_render::RenderScene;
 use nppp_render::auto::{Decision, EstimatorDecision, PilotOptions, Trial, decide, plan};
+use nppp_render::estimator::{EstimatorMode, Estimators};
 use nppp_render::film::{PixelSum, film_image};
 use nppp_render::{Image, RenderOptions};
-use nppp_render::estimator::{EstimatorMode, Estimators};
 
 /// The scene `name` of data/scenes, `width` pixels wide (0: as it is).
 fn load(name: &str, width: u32) -> nppp_scene::Scene {
@@ -190,7 +190,12 @@ fn the_confirmation_pass_renders_the_image_s_own_samples_and_keeps_a_loser_off()
                     f.merge(x);
                 }
             }
-            (p.decision.clone(), p.rest_start(), img, film_image(64, 64, &film))
+            (
+                p.decision.clone(),
+                p.rest_start(),
+                img,
+                film_image(64, 64, &film),
+            )
         })
     };
     let (d, rest, one, parts) = run(1);
@@ -198,13 +203,24 @@ fn the_confirmation_pass_renders_the_image_s_own_samples_and_keeps_a_loser_off()
     let knot = &d.estimators[0];
     let confirmed = knot.confirmed.as_ref().expect("confirmed");
     assert!(d.confirmation.is_some());
-    assert!(rest > 0 && rest <= render.spp / 2, "confirmation samples 0..{rest}");
+    assert!(
+        rest > 0 && rest <= render.spp / 2,
+        "confirmation samples 0..{rest}"
+    );
     assert_eq!(knot.choice, None, "{confirmed:?}");
     assert!(confirmed.efficiency < 1.0, "{confirmed:?}");
-    assert_eq!(d2.estimators[0].confirmed.as_ref().unwrap().rel_var, confirmed.rel_var);
-    let bits = |img: &Image| -> Vec<u32> {
-        img.pixels.iter().flatten().map(|v| v.to_bits()).collect()
-    };
-    assert!(bits(&one) == bits(&two), "the image depends on the thread count");
-    assert!(bits(&one) == bits(&parts), "render parts differ from the image");
+    assert_eq!(
+        d2.estimators[0].confirmed.as_ref().unwrap().rel_var,
+        confirmed.rel_var
+    );
+    let bits =
+        |img: &Image| -> Vec<u32> { img.pixels.iter().flatten().map(|v| v.to_bits()).collect() };
+    assert!(
+        bits(&one) == bits(&two),
+        "the image depends on the thread count"
+    );
+    assert!(
+        bits(&one) == bits(&parts),
+        "render parts differ from the image"
+    );
 }

@@ -137,9 +137,15 @@ pub fn plan(
 /// quarter-resolution pilot puts at 0.98x-1.0x +-5%, were confirmed at
 /// half of the seeds, 4-8 samples per pixel of a loser each time).
 fn unsure_candidate(pt: &Trial, d: &EstimatorDecision, opts: &PilotOptions) -> Option<Choice> {
-    let choice = d
-        .choice
-        .or_else(|| super::choose(&d.trials, &PilotOptions { margin: 0.0, ..*opts }))?;
+    let choice = d.choice.or_else(|| {
+        super::choose(
+            &d.trials,
+            &PilotOptions {
+                margin: 0.0,
+                ..*opts
+            },
+        )
+    })?;
     let t = d.trials.iter().find(|t| t.choice == Some(choice))?;
     let (low, high) = efficiency_bounds(pt, t, opts.confirm_sigmas, opts.variance_ratio_prior);
     (high >= opts.margin && low < opts.margin).then_some(choice)
@@ -266,9 +272,7 @@ impl Halves {
 
 /// Adds film `part` to `film`, pixel by pixel.
 fn merge_into(film: &mut [PixelSum], part: &[PixelSum]) {
-    film.par_iter_mut()
-        .zip(part)
-        .for_each(|(f, p)| f.merge(p));
+    film.par_iter_mut().zip(part).for_each(|(f, p)| f.merge(p));
 }
 
 impl Plan {
@@ -337,8 +341,7 @@ impl Plan {
             let means: Vec<Image> = halves.iter().map(|x| x.mean(width, height)).collect();
             let norm = normalization(&means.iter().collect::<Vec<_>>(), width);
             let cost = |seg: &Segment| {
-                work_cost(&seg.stats.work, &seg.stats.estimators)
-                    / seg.stats.samples.max(1) as f64
+                work_cost(&seg.stats.work, &seg.stats.estimators) / seg.stats.samples.max(1) as f64
             };
             let pt_trial = halves[0].trial(&norm, None, cost(&self.segments[0]));
             let last = round + 1 == rounds;
