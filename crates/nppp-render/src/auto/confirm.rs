@@ -253,20 +253,14 @@ impl Halves {
                 pixel
             })
             .collect();
-        let (rel_var, rel_var_se) = super::mean_and_standard_error(&pixel_rel_var);
         let channels = 3.0 * n;
-        Trial {
+        Trial::measured(
             choice,
-            rel_var,
-            rel_var_se,
             pixel_rel_var,
             cost,
-            efficiency: 1.0,
-            mean: total / channels,
-            mean_var: mean_var / (channels * channels),
-            biased: false,
-            skipped: false,
-        }
+            total / channels,
+            mean_var / (channels * channels),
+        )
     }
 }
 
@@ -495,7 +489,6 @@ impl Plan {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimator::EntryNee;
 
     fn image(values: &[f32]) -> Image {
         let mut img = Image::new(values.len() as u32, 1);
@@ -523,23 +516,7 @@ mod tests {
         assert!((t.mean_var - pilot.mean_var).abs() < 1e-15);
     }
 
-    fn trial(rel_var: f64, rel_var_se: f64, cost: f64, p: Option<u32>) -> Trial {
-        Trial {
-            choice: p.map(|p| Choice {
-                min_bounces: p,
-                entry_nee: EntryNee::Off,
-            }),
-            rel_var,
-            rel_var_se,
-            pixel_rel_var: Vec::new(),
-            cost,
-            efficiency: 1.0,
-            mean: 1.0,
-            mean_var: 0.0,
-            biased: false,
-            skipped: false,
-        }
-    }
+    use super::super::tests::trial;
 
     #[test]
     fn only_what_the_pilot_cannot_tell_is_confirmed() {
@@ -569,7 +546,7 @@ mod tests {
         );
         // Unusable (its image mean is wrong): never.
         let biased = decided(Trial {
-            mean: 0.5,
+            mean: 0.25,
             ..trial(0.8, 0.3, 0.97, Some(1))
         });
         assert!(biased.trials[0].biased);

@@ -235,6 +235,31 @@ pub struct Trial {
 }
 
 impl Trial {
+    /// A measured configuration, not yet scored ([`score`]): its relative
+    /// variance per pixel, its cost per sample, its image mean and the
+    /// variance of that mean.
+    fn measured(
+        choice: Option<Choice>,
+        pixel_rel_var: Vec<f64>,
+        cost: f64,
+        mean: f64,
+        mean_var: f64,
+    ) -> Self {
+        let (rel_var, rel_var_se) = mean_and_standard_error(&pixel_rel_var);
+        Self {
+            choice,
+            rel_var,
+            rel_var_se,
+            pixel_rel_var,
+            cost,
+            efficiency: 1.0,
+            mean,
+            mean_var,
+            biased: false,
+            skipped: false,
+        }
+    }
+
     /// A candidate not measured beyond its first sample per pixel, whose
     /// cost per sample that sample counted (see [`Trial::skipped`]).
     fn not_measured(choice: Choice, cost: f64) -> Self {
@@ -693,20 +718,7 @@ fn normalization(renders: &[&Image], width: u32) -> Vec<[f32; 3]> {
 /// scored: see [`score`]).
 fn trial(norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: f64) -> Trial {
     let (mean, mean_var) = mean_and_variance(a, b);
-    let pixel_rel_var = pixel_rel_var(a, b, norm);
-    let (rel_var, rel_var_se) = mean_and_standard_error(&pixel_rel_var);
-    Trial {
-        choice,
-        rel_var,
-        rel_var_se,
-        pixel_rel_var,
-        cost,
-        efficiency: 1.0,
-        mean,
-        mean_var,
-        biased: false,
-        skipped: false,
-    }
+    Trial::measured(choice, pixel_rel_var(a, b, norm), cost, mean, mean_var)
 }
 
 /// Bias test and efficiency of `t` against PT's trial.
@@ -877,7 +889,13 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn trial(rel_var: f64, rel_var_se: f64, cost: f64, min_bounces: Option<u32>) -> Trial {
+    /// A trial of P = `min_bounces` (`None`: PT), image mean 0.5.
+    pub(super) fn trial(
+        rel_var: f64,
+        rel_var_se: f64,
+        cost: f64,
+        min_bounces: Option<u32>,
+    ) -> Trial {
         Trial {
             choice: min_bounces.map(|p| Choice {
                 min_bounces: p,
