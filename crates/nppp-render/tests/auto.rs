@@ -202,7 +202,7 @@ fn the_confirmation_pass_renders_the_image_s_own_samples_and_keeps_a_loser_off()
     let (d2, _, two, _) = run(2);
     let knot = &d.estimators[0];
     let confirmed = knot.confirmed.as_ref().expect("confirmed");
-    assert!(d.confirmation.is_some());
+    assert!(d.confirmation_pt.is_some());
     assert!(
         rest > 0 && rest <= render.spp / 2,
         "confirmation samples 0..{rest}"

@@ -372,10 +372,7 @@ impl Plan {
                 break;
             }
         }
-        self.decision.confirmation = pt.map(|pt| super::ConfirmationSummary {
-            pt,
-            samples: self.rest_start(),
-        });
+        self.decision.confirmation_pt = pt;
     }
 
     /// The first sample of every pixel rendered in the decided configuration.

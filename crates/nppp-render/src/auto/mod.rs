@@ -342,18 +342,9 @@ pub struct Decision {
     /// The pilot's image size.
     pub width: u32,
     pub height: u32,
-    /// The confirmation pass, if there was one ([`plan`]).
-    pub confirmation: Option<ConfirmationSummary>,
-}
-
-/// What the confirmation pass measured beside its candidates' trials.
-#[derive(Clone, Debug)]
-pub struct ConfirmationSummary {
-    /// PT's trial at full resolution.
-    pub pt: Trial,
-    /// Samples `0..samples` of every pixel were the confirmation's (and are
-    /// in the image).
-    pub samples: u32,
+    /// PT's trial in the confirmation pass at full resolution, if there was
+    /// one ([`plan`]; its samples are [`Plan::rest_start`]'s).
+    pub confirmation_pt: Option<Trial>,
 }
 
 impl Decision {
@@ -390,14 +381,14 @@ impl Decision {
                     })
                     .collect::<Vec<_>>()
                     .join(", ");
-                if let (Some(t), Some(c)) = (&d.confirmed, &self.confirmation) {
+                if let (Some(t), Some(pt)) = (&d.confirmed, &self.confirmation_pt) {
                     // Decided by the confirmation pass.
                     return format!(
                         "{name}: {}, {} {:.2}x PT's efficiency at full resolution ({}; pilot: {tried})",
                         if d.choice.is_some() { label(d.choice) } else { "off".into() },
                         label(t.choice),
                         t.efficiency,
-                        t.against(&c.pt)
+                        t.against(pt)
                     );
                 }
                 let chosen = d
@@ -663,7 +654,7 @@ fn pilot(
         samples,
         width,
         height,
-        confirmation: None,
+        confirmation_pt: None,
     };
     (ests, decision)
 }
