@@ -24,6 +24,9 @@ struct Cli {
     command: Command,
 }
 
+/// The most `--threads` per available core.
+const MAX_THREADS_PER_CORE: usize = 64;
+
 /// `--threads`, on the subcommands whose work runs on the thread pool.
 #[derive(clap::Args)]
 struct Threads {
@@ -110,6 +113,14 @@ impl Threads {
     fn install(&self) -> Result<()> {
         if let Some(t) = self.threads {
             anyhow::ensure!(t >= 1, "--threads must be at least 1");
+            // Far more threads than cores only adds scheduling (a typo of
+            // 100000 took minutes to start and stop its pool).
+            let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let most = MAX_THREADS_PER_CORE * cores.max(1);
+            anyhow::ensure!(
+                t <= most,
+                "--threads {t}: at most {most} ({MAX_THREADS_PER_CORE} per core; this machine has {cores})"
+            );
             rayon::ThreadPoolBuilder::new()
                 .num_threads(t)
                 .build_global()?;

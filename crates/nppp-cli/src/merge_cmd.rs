@@ -59,8 +59,16 @@ pub struct MergeArgs {
 }
 
 pub fn run(a: &MergeArgs) -> Result<()> {
+    // What the output is decides what the parts must be: said first.
+    ensure!(
+        crate::has_extension(&a.out, "exr") || crate::has_extension(&a.out, "nppd"),
+        "--out {}: name the merged file *.exr (render parts) or *.nppd (data parts)",
+        a.out.display()
+    );
     for (i, p) in a.parts.iter().enumerate() {
-        ensure!(p.is_file(), "{}: no such file", p.display());
+        if let Err(e) = nppp_files::open_regular(p) {
+            bail!("{}: {e}", p.display());
+        }
         ensure!(
             !nppp_files::same_file(p, &a.out),
             "--out {} is one of the parts: the merge would replace it",

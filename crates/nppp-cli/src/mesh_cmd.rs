@@ -25,13 +25,15 @@ pub fn run(a: &MeshArgs) -> Result<()> {
         "--out {}: the output is a Wavefront OBJ; name it *.obj",
         a.out.display()
     );
-    let same_file = |x: &std::path::Path, y: &std::path::Path| matches!((x.canonicalize(), y.canonicalize()), (Ok(p), Ok(q)) if p == q);
-    anyhow::ensure!(
-        !same_file(&a.out, &a.scene),
-        "--out {} is the scene file itself",
-        a.out.display()
-    );
     let scene = nppp_scene::load_scene(&a.scene)?;
+    // Nor may it replace any file the scene reads: the scene itself, a
+    // mesh's OBJ (the one exported or another), an estimator.
+    let inputs = scene.input_files();
+    let inputs: Vec<(&str, &std::path::Path)> = inputs
+        .iter()
+        .map(|(w, p)| (w.as_str(), p.as_path()))
+        .collect();
+    nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
     let Some(i) = scene.mesh_names.iter().position(|n| *n == a.mesh) else {
         anyhow::bail!(
             "{}: no mesh named \"{}\" (defined: {})",

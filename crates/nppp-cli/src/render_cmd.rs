@@ -723,7 +723,7 @@ fn part_settings(
     }
     for (i, inst) in scene.instances.iter().enumerate() {
         if let Some(path) = &inst.estimator {
-            let bytes = std::fs::read(path)
+            let bytes = nppp_files::read_regular(path)
                 .with_context(|| format!("instances[{i}].estimator {}", path.display()))?;
             let mut h = nppp_scene::hash::Fnv1a::new();
             h.bytes(&bytes);

@@ -1483,3 +1483,169 @@ fn plot_csv_errors_name_the_file() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+// ---------------------------------------------------------------------------
+// Found by the adversarial pass of 2026-11-26
+// ---------------------------------------------------------------------------
+
+/// `nppp mesh` exported over the scene's own OBJ (the one exported or
+/// another mesh's), replacing the user's file with triangles.
+#[test]
+fn mesh_export_never_replaces_a_file_the_scene_reads() {
+    let dir = scratch("mesh-over-input");
+    let user_obj =
+        "# the user's model\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1 4/1\n";
+    std::fs::write(dir.join("model.obj"), user_obj).unwrap();
+    let scene = std::fs::read_to_string(file("ok_tiny.json"))
+        .unwrap()
+        .replace(
+            r#""block": {"box": {"min": [-0.5, 0, -0.5], "max": [0, 0.5, 0]}}"#,
+            r#""block": {"obj": "model.obj"}"#,
+        );
+    assert!(scene.contains("model.obj"));
+    let scene_path = dir.join("scene.json");
+    std::fs::write(&scene_path, &scene).unwrap();
+    for mesh in ["block", "ball"] {
+        let o = nppp([
+            "mesh".as_ref(),
+            "--scene".as_ref(),
+            scene_path.as_os_str(),
+            "--mesh".as_ref(),
+            mesh.as_ref(),
+            "--out".as_ref(),
+            dir.join("model.obj").as_os_str(),
+        ]);
+        assert_clean_error(
+            &format!("mesh {mesh} over model.obj"),
+            &o,
+            &["--out", "model.obj", "a mesh of the scene"],
+        );
+        assert_eq!(
+            std::fs::read_to_string(dir.join("model.obj")).unwrap(),
+            user_obj
+        );
+    }
+    assert_eq!(names_in(&dir), ["model.obj", "scene.json"]);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A device (here `/dev/zero`) named as a scene, a mesh, an estimator or a
+/// render part was read until memory ran out; a folder as a part was "no
+/// such file".
+#[cfg(target_os = "linux")]
+#[test]
+fn special_files_are_refused_as_inputs() {
+    let zero = Path::new("/dev/zero");
+    if !zero.exists() {
+        return;
+    }
+    render_fails(
+        "scene-dev-zero",
+        zero,
+        &[],
+        &["/dev/zero", "not a regular file"],
+    );
+    let dir = scratch("special-files");
+    let tiny = std::fs::read_to_string(file("ok_tiny.json")).unwrap();
+    let obj_scene = dir.join("obj.json");
+    std::fs::write(
+        &obj_scene,
+        tiny.replace(
+            r#""block": {"box": {"min": [-0.5, 0, -0.5], "max": [0, 0.5, 0]}}"#,
+            r#""block": {"obj": "/dev/zero"}"#,
+        ),
+    )
+    .unwrap();
+    render_fails(
+        "obj-dev-zero",
+        &obj_scene,
+        &[],
+        &["meshes.block", "not a regular file"],
+    );
+    let est_scene = dir.join("est.json");
+    std::fs::write(
+        &est_scene,
+        tiny.replace(
+            r#"{"mesh": "block", "material": "gold"}"#,
+            r#"{"mesh": "block", "material": "gold", "estimator": "/dev/zero"}"#,
+        ),
+    )
+    .unwrap();
+    render_fails(
+        "est-dev-zero",
+        &est_scene,
+        &[],
+        &["instances[2].estimator", "not a regular file"],
+    );
+    let o = nppp(["info".as_ref(), zero.as_os_str()]);
+    assert_clean_error("info /dev/zero", &o, &["/dev/zero", "not a regular file"]);
+    for (part, needle) in [(zero, "a device"), (dir.as_path(), "a folder")] {
+        let o = nppp([
+            "merge".as_ref(),
+            part.as_os_str(),
+            "--out".as_ref(),
+            dir.join("m.exr").as_os_str(),
+        ]);
+        assert_clean_error(
+            "merge of a special file",
+            &o,
+            &["not a regular file", needle],
+        );
+    }
+    // The output's kind is said before the parts are looked at.
+    let o = nppp([
+        "merge".as_ref(),
+        file("data_valid.nppd").as_os_str(),
+        "--out".as_ref(),
+        dir.join("m.json").as_os_str(),
+    ]);
+    assert_clean_error(
+        "merge --out m.json",
+        &o,
+        &["--out", "*.exr (render parts) or *.nppd"],
+    );
+    assert_eq!(names_in(&dir), ["est.json", "obj.json"]);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A sample range at the top of u32 wrapped the batch arithmetic and
+/// rendered from sample 0 again (billions of samples); a thread count far
+/// beyond the cores took minutes to start.
+#[test]
+fn extreme_sample_ranges_and_thread_counts() {
+    let dir = scratch("extreme-ranges");
+    let part = dir.join("p.nppr");
+    let o = nppp([
+        "render".as_ref(),
+        file("ok_tiny.json").as_os_str(),
+        "--spp".as_ref(),
+        "4294967295".as_ref(),
+        "--samples".as_ref(),
+        "4294967290..4294967295".as_ref(),
+        "--out".as_ref(),
+        part.as_os_str(),
+        "--quiet".as_ref(),
+    ]);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    assert!(
+        text(&o).contains("samples 4294967290..4294967295 of 4294967295"),
+        "{}",
+        text(&o)
+    );
+    let out = dir.join("out.exr");
+    let o = nppp([
+        "render".as_ref(),
+        file("ok_tiny.json").as_os_str(),
+        "--threads".as_ref(),
+        "100000".as_ref(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    assert_clean_error(
+        "--threads 100000",
+        &o,
+        &["--threads 100000: at most", "per core"],
+    );
+    assert!(!out.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

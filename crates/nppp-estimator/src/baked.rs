@@ -314,7 +314,7 @@ impl BakedEstimator {
 
     pub fn load(path: &Path) -> Result<Self, EstimatorFileError> {
         // The only allocation before validation is the file itself.
-        let bytes = std::fs::read(path).map_err(|err| EstimatorFileError::Io { path: path.into(), err })?;
+        let bytes = nppp_files::read_regular(path).map_err(|err| EstimatorFileError::Io { path: path.into(), err })?;
         Self::from_bytes(&bytes, path)
     }
 

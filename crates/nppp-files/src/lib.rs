@@ -14,6 +14,10 @@
 //! - [`crash_point`]: named points where the tests kill the process
 //!   (`NPPP_CRASH_AT=name`), to prove that every file survives a kill at
 //!   every step of a multi-file write (a model checkpoint).
+//! - [`open_regular`] / [`read_regular`]: every input file is opened
+//!   through these, which refuse what is not a regular file (a device such
+//!   as `/dev/zero` would be read until memory runs out, a folder gives a
+//!   misleading error).
 //! - [`available_memory`]: what a command may plan to allocate, so that a
 //!   flag or a file that claims gigabytes is refused with a message instead
 //!   of aborting on allocation.
@@ -28,6 +32,45 @@ use std::path::{Path, PathBuf};
 
 /// The environment variable that names a crash point (tests only).
 pub const CRASH_ENV: &str = "NPPP_CRASH_AT";
+
+/// Opens an input file for reading, refusing anything but a regular file
+/// (a device, a pipe, a socket or a folder) with an error that says so.
+pub fn open_regular(path: &Path) -> io::Result<File> {
+    let f = File::open(path)?;
+    let kind = f.metadata()?.file_type();
+    if kind.is_file() {
+        return Ok(f);
+    }
+    let what = if kind.is_dir() {
+        "a folder"
+    } else {
+        "a device, pipe or socket"
+    };
+    Err(io::Error::new(
+        io::ErrorKind::InvalidInput,
+        format!("not a regular file ({what})"),
+    ))
+}
+
+/// Reads a whole input file (see [`open_regular`]).
+pub fn read_regular(path: &Path) -> io::Result<Vec<u8>> {
+    use std::io::Read;
+    let mut f = open_regular(path)?;
+    let mut bytes = Vec::new();
+    f.read_to_end(&mut bytes)?;
+    Ok(bytes)
+}
+
+/// Reads a whole input text file (see [`open_regular`]); not UTF-8 is an
+/// error, as [`std::fs::read_to_string`] has it.
+pub fn read_regular_to_string(path: &Path) -> io::Result<String> {
+    String::from_utf8(read_regular(path)?).map_err(|_| {
+        io::Error::new(
+            io::ErrorKind::InvalidData,
+            "stream did not contain valid UTF-8",
+        )
+    })
+}
 
 /// `dir/.name.<pid>.tmp`: in the target's own folder (a rename must not
 /// cross filesystems), hidden, and unique per process.

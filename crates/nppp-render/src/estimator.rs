@@ -431,7 +431,7 @@ pub enum EstimatorLoadError {
         err: nppp_estimator::EstimatorFileError,
     },
     #[error(
-        "instances[{instance}].estimator: {file}: this estimator was trained for mesh \"{trained_mesh}\" (hash {trained_mesh_hash:016x}) with material \"{trained_material}\" (hash {trained_material_hash:016x}), but the instance uses mesh \"{mesh}\" (hash {mesh_hash:016x}) with material \"{material}\" (hash {material_hash:016x})"
+        "instances[{instance}].estimator: {file}: this estimator was trained for mesh \"{trained_mesh}\" (hash {trained_mesh_hash:016x}) with material \"{trained_material}\" (hash {trained_material_hash:016x}), but the instance uses mesh \"{mesh}\" (hash {mesh_hash:016x}) with material \"{material}\" (hash {material_hash:016x}). An estimator answers for one mesh and material only: train one for this instance (`nppp gen --scene SCENE --instance {instance}`, then `nppp train` and `nppp bake`: README, \"Set up\"), remove the instance's `estimator` key, or render with `--estimators off`"
     )]
     Mismatch {
         file: std::path::PathBuf,

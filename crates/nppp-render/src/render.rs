@@ -235,7 +235,10 @@ fn render_tile(
     let spp_per_batch = (BATCH_PATHS / px).max(1) as u32;
     let mut s0 = samples.start;
     while s0 < samples.end {
-        let s1 = ((s0 / spp_per_batch + 1) * spp_per_batch).min(samples.end);
+        // The batch grid's next line, in u64: near u32::MAX it would wrap
+        // to 0 and start the range over.
+        let next = (u64::from(s0 / spp_per_batch) + 1) * u64::from(spp_per_batch);
+        let s1 = next.min(u64::from(samples.end)) as u32;
         wf.paths.clear();
         for y in 0..th {
             for x in 0..tw {

@@ -237,7 +237,8 @@ fn read_header_from(f: &mut impl Read, path: &Path) -> Result<RenderPartHeader, 
 }
 
 fn open(path: &Path) -> Result<std::io::BufReader<std::fs::File>, RenderPartError> {
-    let f = std::fs::File::open(path).map_err(|e| file_err(path, format!("cannot open: {e}")))?;
+    let f =
+        nppp_files::open_regular(path).map_err(|e| file_err(path, format!("cannot open: {e}")))?;
     Ok(std::io::BufReader::new(f))
 }
 
@@ -307,6 +308,22 @@ pub fn read_part(path: &Path) -> Result<(RenderPartHeader, Vec<PixelSum>), Rende
                     i as u32 % header.width,
                     i as u32 / header.width,
                     u64::from(p.valid) + u64::from(p.dropped)
+                ),
+            ));
+        }
+        // Radiance samples are finite and non-negative: a sum below 0 or
+        // beyond what its samples could add up to would make the merged
+        // image negative or infinite.
+        let most = f64::from(p.valid) * f64::from(f32::MAX);
+        if let Some(c) = (0..3).find(|&c| !(0.0..=most).contains(&p.sum[c].to_f64())) {
+            return Err(file_err(
+                path,
+                format!(
+                    "pixel ({}, {}): its channel {c} sums to {:e} over {} samples, which no render makes: the file is damaged",
+                    i as u32 % header.width,
+                    i as u32 / header.width,
+                    p.sum[c].to_f64(),
+                    p.valid
                 ),
             ));
         }
@@ -447,4 +464,63 @@ pub fn merge_parts(paths: &[PathBuf]) -> Result<MergedRender, RenderPartError> {
 pub fn shard_samples(index: u32, count: u32, spp: u32) -> std::ops::Range<u32> {
     let at = |i: u32| (u64::from(i) * u64::from(spp) / u64::from(count)) as u32;
     at(index)..at(index + 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn header() -> RenderPartHeader {
+        RenderPartHeader {
+            renderer: renderer_id(),
+            scene: "s.json".into(),
+            scene_hash: "0".into(),
+            width: 2,
+            height: 1,
+            spp: 2,
+            seed: 0,
+            max_bounces: 5,
+            samples: [0, 2],
+            settings: BTreeMap::new(),
+            seconds: 0.0,
+        }
+    }
+
+    fn film_of(sums: [f32; 2]) -> Vec<PixelSum> {
+        sums.map(|x| {
+            let mut p = PixelSum::default();
+            p.add(glam::Vec3::splat(x));
+            p.add(glam::Vec3::ZERO);
+            p
+        })
+        .to_vec()
+    }
+
+    /// A part whose sums no render could make (a forged or damaged file
+    /// with valid checksums) is refused: merged, it made the image
+    /// infinite or negative.
+    #[test]
+    fn sums_no_render_makes_are_refused() {
+        let dir = std::env::temp_dir().join(format!("nppp-part-sums-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.nppr");
+        write_part(&path, &header(), &film_of([1.5, 0.0])).unwrap();
+        let (_, film) = read_part(&path).unwrap();
+        assert_eq!(film[0].mean(), [0.75; 3]);
+
+        let mut negative = film_of([1.0, 0.0]);
+        negative[1].sum[2].add_f32(-3.0);
+        let mut beyond = film_of([f32::MAX, f32::MAX]);
+        beyond[0].sum[0].add_f32(f32::MAX);
+        beyond[0].sum[0].add_f32(f32::MAX);
+        for (film, needle) in [
+            (negative, "pixel (1, 0): its channel 2"),
+            (beyond, "pixel (0, 0): its channel 0"),
+        ] {
+            write_part(&path, &header(), &film).unwrap();
+            let err = read_part(&path).unwrap_err().to_string();
+            assert!(err.contains(needle) && err.contains("damaged"), "{err}");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

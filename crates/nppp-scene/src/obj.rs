@@ -40,6 +40,9 @@ struct Corner {
 /// Parses OBJ text. With `smooth`, every face must give a normal for every
 /// corner and the mesh carries them (normalized) as shading normals.
 pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
+    // A byte-order mark (Windows editors write one) is not part of the
+    // first line: left there, it hid that line's vertex.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let mut positions: Vec<Vec3> = Vec::new();
     let mut normals: Vec<Vec3> = Vec::new();
     let mut texcoords = 0usize;

@@ -173,3 +173,13 @@ fn smooth_normals_near_f32_max_are_directions_not_zero() {
         "{n}"
     );
 }
+
+#[test]
+fn a_byte_order_mark_does_not_hide_the_first_line() {
+    // Before: the mark made the first `v` line unknown, so a vertex was
+    // silently dropped and every later index meant another vertex.
+    let m = obj_mesh(&format!("\u{feff}{SQUARE}f 1 2 3\n"), false).expect("loads");
+    assert_eq!(m.positions.len(), 4);
+    assert_eq!(m.positions[0], Vec3::ZERO);
+    assert_eq!(m.triangles, [[0, 1, 2]]);
+}

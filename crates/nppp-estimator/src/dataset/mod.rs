@@ -11,7 +11,6 @@
 use crate::exit::Exit;
 use nppp_geom::{BoundingSphere, SpherePair, Vec3};
 use serde::{Deserialize, Serialize};
-use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -652,7 +651,7 @@ impl DatasetReader {
     /// payloads are read (and checked) only when asked for.
     pub fn open(path: &Path) -> Result<Self, DatasetError> {
         let io = |err| DatasetError::Io { path: path.into(), err };
-        let f = File::open(path).map_err(io)?;
+        let f = nppp_files::open_regular(path).map_err(io)?;
         let len = f.metadata().map_err(io)?.len();
         Self::from_source(Box::new(BufReader::with_capacity(1 << 20, f)), len, path)
     }

@@ -162,7 +162,8 @@ impl Cx<'_> {
             line,
             message,
         };
-        let bytes = std::fs::read(&file).map_err(|e| obj_err(None, format!("cannot read: {e}")))?;
+        let bytes = nppp_files::read_regular(&file)
+            .map_err(|e| obj_err(None, format!("cannot read: {e}")))?;
         // Lossy: a stray Latin-1 byte in a comment must not reject a mesh.
         let text = String::from_utf8_lossy(&bytes);
         parse_obj(&text, smooth).map_err(|e| obj_err(e.line, e.message))

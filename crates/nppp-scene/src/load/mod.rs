@@ -28,11 +28,12 @@ pub const MAX_WORLD_COORD: f64 = 1e15;
 /// Reads and validates a scene file. Relative OBJ and estimator paths are
 /// resolved against the file's folder.
 pub fn load_scene(path: &Path) -> Result<Scene, SceneError> {
-    let text = std::fs::read_to_string(path).map_err(|error| SceneError::Read {
+    let text = nppp_files::read_regular_to_string(path).map_err(|error| SceneError::Read {
         file: path.to_path_buf(),
         error,
     })?;
-    parse_scene(&text, path)
+    // A byte-order mark (Windows editors write one) is not JSON.
+    parse_scene(text.strip_prefix('\u{feff}').unwrap_or(&text), path)
 }
 
 /// Validates scene JSON that was read from `path` (or pretends to be: the
