@@ -391,10 +391,15 @@ fn shade(
         // Into the object's medium (if it has one) from its front side, out
         // of it from its back side.
         path.medium = match scene.media[hit.instance as usize] {
-            Some(_) if wo_world.dot(ng) > 0.0 => Some(MediumVisit {
-                instance: hit.instance,
-                hero: HeroChannel::pick(path.rng.uniform()),
-            }),
+            Some(_) if wo_world.dot(ng) > 0.0 => {
+                // One hero channel for all the path's medium visits, drawn
+                // at every entry and used from the first (`crate::medium`).
+                let picked = HeroChannel::pick(path.rng.uniform());
+                path.hero.get_or_insert(picked);
+                Some(MediumVisit {
+                    instance: hit.instance,
+                })
+            }
             _ => None,
         };
     }
@@ -411,10 +416,11 @@ fn scatter_in_medium(
     path: &mut PathState,
     t_max: f32,
 ) -> Option<Next> {
-    let visit = path.medium.as_mut()?;
+    let visit = path.medium?;
     let medium = scene.media[visit.instance as usize]?;
-    let flight = medium.sample_free_flight(t_max, visit.hero.channel, path.rng.uniform());
-    visit.hero.apply(&mut path.beta, &flight);
+    let hero = path.hero.as_mut()?;
+    let flight = medium.sample_free_flight(t_max, hero.channel, path.rng.uniform());
+    hero.apply(&mut path.beta, &flight);
     if !flight.scattered {
         return None;
     }

@@ -126,11 +126,13 @@ impl ObjectTracer<'_> {
         let mut radiance = Vec3::ZERO;
         let mut bounces = 0u32;
         let mut first = true;
-        // The spectral MIS of the medium visit the path is in, if it is.
-        let mut visit: Option<HeroChannel> = None;
+        // The walk's spectral MIS (one hero channel for all its visits of
+        // the medium: see `crate::medium`), and whether it is in the medium.
+        let mut hero: Option<HeroChannel> = None;
+        let mut in_medium = false;
         loop {
             let hit = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY);
-            if let (Some(hero), Some(medium)) = (&mut visit, &self.medium) {
+            if let (true, Some(hero), Some(medium)) = (in_medium, &mut hero, &self.medium) {
                 let t_max = hit.map_or(f32::INFINITY, |h| h.t);
                 let flight = medium.sample_free_flight(t_max, hero.channel, rng.uniform());
                 hero.apply(&mut beta, &flight);
@@ -203,8 +205,12 @@ impl ObjectTracer<'_> {
             beta *= bs.weight;
             if bs.transmitted {
                 // Into the medium from the front (outside), out of it from the back.
-                visit = (wo.dot(ng) > 0.0 && self.medium.is_some())
-                    .then(|| HeroChannel::pick(rng.uniform()));
+                in_medium = wo.dot(ng) > 0.0 && self.medium.is_some();
+                if in_medium {
+                    // Drawn at every entry, used at the first.
+                    let picked = HeroChannel::pick(rng.uniform());
+                    hero.get_or_insert(picked);
+                }
             }
             let eps = (p.abs().max_element().max(r) * OFFSET_REL).max(f32::MIN_POSITIVE);
             o = offset_ray_origin(p, ng, wi, eps);

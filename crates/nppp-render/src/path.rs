@@ -33,6 +33,9 @@ pub struct PathState {
     /// refracts into a translucent object, cleared when it refracts out
     /// (media do not nest).
     pub medium: Option<MediumVisit>,
+    /// The path's spectral MIS over all its medium visits: picked at its
+    /// first entry into a medium, kept to its end (see `crate::medium`).
+    pub hero: Option<HeroChannel>,
 }
 
 /// A path's visit of a translucent object's medium.
@@ -40,8 +43,6 @@ pub struct PathState {
 pub struct MediumVisit {
     /// The instance whose medium it is (`RenderScene::media`).
     pub instance: u32,
-    /// The visit's spectral MIS (see `crate::medium`).
-    pub hero: HeroChannel,
 }
 
 impl PathState {
@@ -60,6 +61,7 @@ impl PathState {
             eta_scale: 1.0,
             skip_instance: crate::accel::NO_SKIP,
             medium: None,
+            hero: None,
         }
     }
 }
