@@ -8,8 +8,9 @@
 //! enters a medium and drives every free flight of the path, in that
 //! medium and in any it enters later; each channel's contribution is then
 //! divided by the average of the three channels' pdfs of all the path's
-//! free flights, not by the hero's alone. Per channel the estimate is
-//! bounded by three times the albedo product, where using the hero's pdf
+//! free flights, not by the hero's alone. Per channel the MIS weight is
+//! bounded by three times the albedo product (Russian roulette's
+//! reweighting comes on top), where using the hero's pdf
 //! alone (Mitsuba's `volpath`) or mixing per event has unbounded weights: a
 //! dense channel's long random walks are sampled rarely, with huge weights,
 //! and a finite render underestimates it (2.26 and 1.67 instead of 2 in the
