@@ -59,16 +59,7 @@ pub struct MergeArgs {
 }
 
 pub fn run(a: &MergeArgs) -> Result<()> {
-    // What the output is decides what the parts must be: said first.
-    ensure!(
-        crate::has_extension(&a.out, "exr") || crate::has_extension(&a.out, "nppd"),
-        "--out {}: name the merged file *.exr (render parts) or *.nppd (data parts)",
-        a.out.display()
-    );
-    for (i, p) in a.parts.iter().enumerate() {
-        if let Err(e) = nppp_files::open_regular(p) {
-            bail!("{}: {e}", p.display());
-        }
+    for p in &a.parts {
         ensure!(
             !nppp_files::same_file(p, &a.out),
             "--out {} is one of the parts: the merge would replace it",
@@ -80,6 +71,18 @@ pub fn run(a: &MergeArgs) -> Result<()> {
                 "--png {} is one of the parts: the merge would replace it",
                 png.display()
             );
+        }
+    }
+    // What the output is decides what the parts must be: said before
+    // the parts are read.
+    ensure!(
+        crate::has_extension(&a.out, "exr") || crate::has_extension(&a.out, "nppd"),
+        "--out {}: name the merged file *.exr (render parts) or *.nppd (data parts)",
+        a.out.display()
+    );
+    for (i, p) in a.parts.iter().enumerate() {
+        if let Err(e) = nppp_files::open_regular(p) {
+            bail!("{}: {e}", p.display());
         }
         if let Some(j) = a.parts[..i]
             .iter()
@@ -93,17 +96,12 @@ pub fn run(a: &MergeArgs) -> Result<()> {
     }
     if crate::has_extension(&a.out, "exr") {
         merge_render(a)
-    } else if crate::has_extension(&a.out, "nppd") {
+    } else {
         ensure!(
             a.png.is_none(),
             "--png is for render parts; data parts merge into an .nppd file"
         );
         merge_data(a)
-    } else {
-        bail!(
-            "--out {}: name the merged file *.exr (render parts) or *.nppd (data parts)",
-            a.out.display()
-        )
     }
 }
 
