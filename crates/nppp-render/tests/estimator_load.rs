@@ -49,3 +49,35 @@ fn a_sphere_that_does_not_fit_the_mesh_is_refused() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Every scene the repository ships (benchmark scenes, unseen variants,
+/// translucent checks) parses, and its estimators load and bind to their
+/// instances (mesh and material hashes, bounding sphere): a scene file
+/// edited by hand or by a script must not reach a user broken.
+#[test]
+fn every_committed_scene_loads_with_its_estimators() {
+    fn scenes(dir: &std::path::Path, out: &mut Vec<std::path::PathBuf>) {
+        for e in std::fs::read_dir(dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                scenes(&p, out);
+            } else if p.extension().is_some_and(|x| x == "json") {
+                out.push(p);
+            }
+        }
+    }
+    let mut files = Vec::new();
+    scenes(&repo_root().join("data/scenes"), &mut files);
+    files.sort();
+    assert!(files.len() >= 15, "{files:?}");
+    let mut with_estimators = 0;
+    for f in &files {
+        let scene = nppp_scene::load_scene(f).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+        if scene.instances.iter().any(|i| i.estimator.is_some()) {
+            Estimators::load(&scene, EstimatorMode::Neural, 0)
+                .unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+            with_estimators += 1;
+        }
+    }
+    assert!(with_estimators >= 12, "{with_estimators}");
+}
