@@ -297,35 +297,35 @@ pub fn read_part(path: &Path) -> Result<(RenderPartHeader, Vec<PixelSum>), Rende
     }
     let counts = 96 * n;
     let per_pixel = header.samples[1] - header.samples[0];
+    let damaged = |i: usize, what: String| {
+        file_err(
+            path,
+            format!(
+                "pixel ({}, {}) {what}: the file is damaged",
+                i as u32 % header.width,
+                i as u32 / header.width
+            ),
+        )
+    };
     for (i, p) in film.iter_mut().enumerate() {
         p.valid = u32_at(&raw, counts + 4 * i);
         p.dropped = u32_at(&raw, counts + 4 * n + 4 * i);
-        if u64::from(p.valid) + u64::from(p.dropped) != u64::from(per_pixel) {
-            return Err(file_err(
-                path,
-                format!(
-                    "pixel ({}, {}) counts {} samples, the part holds {per_pixel} per pixel: the file is damaged",
-                    i as u32 % header.width,
-                    i as u32 / header.width,
-                    u64::from(p.valid) + u64::from(p.dropped)
-                ),
-            ));
+        let count = u64::from(p.valid) + u64::from(p.dropped);
+        if count != u64::from(per_pixel) {
+            let what = format!("counts {count} samples, the part holds {per_pixel} per pixel");
+            return Err(damaged(i, what));
         }
         // Radiance samples are finite and non-negative: a sum below 0 or
         // beyond what its samples could add up to would make the merged
         // image negative or infinite.
         let most = f64::from(p.valid) * f64::from(f32::MAX);
         if let Some(c) = (0..3).find(|&c| !(0.0..=most).contains(&p.sum[c].to_f64())) {
-            return Err(file_err(
-                path,
-                format!(
-                    "pixel ({}, {}): its channel {c} sums to {:e} over {} samples, which no render makes: the file is damaged",
-                    i as u32 % header.width,
-                    i as u32 / header.width,
-                    p.sum[c].to_f64(),
-                    p.valid
-                ),
-            ));
+            let what = format!(
+                "channel {c} sums to {:e} over {} samples, which no render makes",
+                p.sum[c].to_f64(),
+                p.valid
+            );
+            return Err(damaged(i, what));
         }
     }
     Ok((header, film))
@@ -514,8 +514,8 @@ mod tests {
         beyond[0].sum[0].add_f32(f32::MAX);
         beyond[0].sum[0].add_f32(f32::MAX);
         for (film, needle) in [
-            (negative, "pixel (1, 0): its channel 2"),
-            (beyond, "pixel (0, 0): its channel 0"),
+            (negative, "pixel (1, 0) channel 2"),
+            (beyond, "pixel (0, 0) channel 0"),
         ] {
             write_part(&path, &header(), &film).unwrap();
             let err = read_part(&path).unwrap_err().to_string();
