@@ -78,7 +78,10 @@ pub struct RenderArgs {
     /// against the real mesh) and weight an emitter hit by a one-bounce exit
     /// by MIS; works with any estimator. `picked`: at one vertex of the
     /// skipped path picked by throughput; needs an estimator that returns
-    /// vertices (so far only `--estimators oracle`). `off`: the thesis.
+    /// vertices: `--estimators oracle` (MIS against the exit), or an
+    /// estimator file with a vertex head (the light sample alone, the exit's
+    /// emitter hit counted 0). `picked-light`: `picked` without MIS for the
+    /// oracle too, to measure the network's scheme. `off`: the thesis.
     #[arg(long, value_enum, default_value_t = EntryNeeChoice::Off)]
     pub entry_nee: EntryNeeChoice,
     /// With --estimators auto: where the pilot cannot tell whether an
@@ -119,6 +122,7 @@ pub enum EntryNeeChoice {
     Off,
     First,
     Picked,
+    PickedLight,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -157,6 +161,30 @@ pub enum DecoderChoice {
     BurnNdarray,
     BurnFlex,
     BurnWgpu,
+}
+
+/// `--entry-nee picked` with neural estimators: every estimator of an object
+/// whose surface takes light samples must have a vertex head.
+fn check_vertex_heads(e: &Estimators) -> Result<()> {
+    for est in &e.list {
+        let EstimatorModel::Neural { sampler } = &est.model else {
+            continue;
+        };
+        let lit = nppp_render::datagen::picked_vertex_bsdf(est.surface).is_some();
+        if lit && !sampler.has_vertex_head() {
+            let m = sampler.meta();
+            bail!(
+                "--entry-nee picked: the estimator of mesh '{}' ({}) has no vertex head, so it \
+                 returns no vertex of the skipped path. Rebuild it from data made by this \
+                 version (`nppp gen`, `nppp train`, `nppp bake`; `make bake OBJECT=...` for the \
+                 committed ones), use --estimators oracle, or --entry-nee first, which works \
+                 with any estimator",
+                m.mesh_name,
+                m.material_name
+            );
+        }
+    }
+    Ok(())
 }
 
 fn attach_decoders(ests: &mut Estimators, choice: DecoderChoice) -> Result<()> {
@@ -396,13 +424,15 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             }
         );
     }
-    if a.entry_nee == EntryNeeChoice::Picked
-        && !matches!(mode, EstimatorMode::Oracle | EstimatorMode::Off)
-    {
+    let picked = matches!(
+        a.entry_nee,
+        EntryNeeChoice::Picked | EntryNeeChoice::PickedLight
+    );
+    if picked && mode == EstimatorMode::CostFloor {
         bail!(
             "--entry-nee picked needs an estimator that returns a vertex of the skipped path: \
-             only --estimators oracle does so far (the .nppp format holds exits only); \
-             --entry-nee first works with any estimator"
+             --estimators oracle, or neural with files that have a vertex head; the cost floor \
+             returns none"
         );
     }
     let auto = a.estimators == EstimatorChoice::Auto;
@@ -424,7 +454,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             EntryNeeChoice::Off => EntryNee::Off,
             EntryNeeChoice::First => EntryNee::FirstVertex,
             EntryNeeChoice::Picked => EntryNee::PickedVertex,
+            EntryNeeChoice::PickedLight => EntryNee::PickedVertexLightOnly,
         };
+        if picked {
+            check_vertex_heads(e)?;
+        }
         e.configure(settings.estimator_min_bounces, nee);
         e.latent_lookup = match a.latent_lookup {
             LatentLookupChoice::Interpolate => LatentLookup::Interpolate,

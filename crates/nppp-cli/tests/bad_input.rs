@@ -620,8 +620,8 @@ const ESTIMATOR_SCENES: &[(&str, &str, &[&str])] = &[
     ),
     (
         "est_wrong_version.json",
-        "est_version_2.nppp",
-        &["version 2 not supported"],
+        "est_version_3.nppp",
+        &["version 3 not supported"],
     ),
     (
         "est_corrupted.json",
@@ -746,13 +746,24 @@ fn absurd_flags_are_rejected_before_rendering() {
         &["--spp must be at least 1"],
     );
     // Next-event estimation through the estimator at a picked vertex needs
-    // an estimator that returns vertices: refused for the network, with the
-    // alternative named; an unknown mode is a usage error.
+    // an estimator that returns vertices: refused for the cost floor, and
+    // for an estimator file without a vertex head (named, with how to
+    // rebuild it and the alternatives); an unknown mode is a usage error.
     render_fails(
-        "entry-nee-picked-neural",
+        "entry-nee-picked-cost-floor",
         &scene,
-        &["--entry-nee", "picked"],
-        &["--entry-nee picked needs", "--entry-nee first works"],
+        &["--estimators", "cost-floor", "--entry-nee", "picked"],
+        &["--entry-nee picked needs", "the cost floor"],
+    );
+    render_fails(
+        "entry-nee-picked-no-vertex-head",
+        &file("ok_estimator.json"),
+        &["--estimators", "neural", "--entry-nee", "picked"],
+        &[
+            "the estimator of mesh 'ball' (white) has no vertex head",
+            "nppp bake",
+            "--entry-nee first",
+        ],
     );
     render_fails(
         "auto-with-p",
@@ -1038,8 +1049,8 @@ const ESTIMATORS: &[(&str, &[&str])] = &[
         &["not an nppp estimator file (wrong magic"],
     ),
     (
-        "est_version_2.nppp",
-        &["version 2 not supported (this build reads 1)"],
+        "est_version_3.nppp",
+        &["version 3 not supported (this build reads 1 to 2; `make bake` or `nppp bake` rebuilds it)"],
     ),
     (
         "est_corrupted.nppp",
@@ -1095,7 +1106,7 @@ const DATASETS: &[(&str, &[&str])] = &[
         "data_wrong_magic.nppd",
         &["not an nppp training-data file (wrong magic"],
     ),
-    ("data_version_2.nppd", &["version 2 not supported"]),
+    ("data_version_3.nppd", &["version 3 not supported"]),
     (
         "data_corrupted_header.nppd",
         &["invalid header: checksum mismatch"],
@@ -1302,8 +1313,8 @@ fn write_estimators() {
         .collect();
     w("est_garbage.nppp", &garbage);
     let mut b = good.clone();
-    b[8..12].copy_from_slice(&2u32.to_le_bytes());
-    w("est_version_2.nppp", &b);
+    b[8..12].copy_from_slice(&3u32.to_le_bytes());
+    w("est_version_3.nppp", &b);
     let mut b = good.clone();
     let last = b.len() - 3;
     b[last] ^= 0x40;
@@ -1350,6 +1361,7 @@ fn tiny_dataset(path: &Path) {
         seed: 0,
         max_internal_bounces: 8,
         shard: None,
+        vertices: false,
     };
     let mut wr = DatasetWriter::create_with(
         path,
@@ -1375,6 +1387,7 @@ fn tiny_dataset(path: &Path) {
             pair: SpherePair([f, 0.5, 1.0 - f, 0.25]),
             hit,
             exits,
+            vertices: vec![],
         })
         .unwrap();
     }
@@ -1395,8 +1408,8 @@ fn write_datasets() {
     b[..8].copy_from_slice(b"NPPPEST\0");
     w("data_wrong_magic.nppd", &b);
     let mut b = good.clone();
-    b[8..12].copy_from_slice(&2u32.to_le_bytes());
-    w("data_version_2.nppd", &b);
+    b[8..12].copy_from_slice(&3u32.to_le_bytes());
+    w("data_version_3.nppd", &b);
     let mut b = good.clone();
     b[20] ^= 0x01;
     w("data_corrupted_header.nppd", &b);

@@ -56,6 +56,7 @@ fn write_data(path: &Path, rays: u32, k: u32) {
         seed: 0,
         max_internal_bounces: 8,
         shard: None,
+        vertices: false,
     };
     let mut wr = DatasetWriter::create_with(path, header, WriterOptions::default()).unwrap();
     for i in 0..rays {
@@ -81,6 +82,7 @@ fn write_data(path: &Path, rays: u32, k: u32) {
             pair: SpherePair([f, (f * 7.0) % 1.0, 1.0 - f, (f * 3.0) % 1.0]),
             hit,
             exits,
+            vertices: vec![],
         })
         .unwrap();
     }
@@ -551,6 +553,7 @@ fn a_data_file_that_claims_too_much_is_refused() {
         seed: 0,
         max_internal_bounces: 8,
         shard: None,
+        vertices: false,
     };
     let mut wr = DatasetWriter::create_with(&data, header, WriterOptions::default()).unwrap();
     let exit = Exit {
@@ -566,6 +569,7 @@ fn a_data_file_that_claims_too_much_is_refused() {
             pair: SpherePair([f, 0.5, 0.5, 0.5]),
             hit: true,
             exits: vec![exit; k as usize],
+            vertices: vec![],
         })
         .unwrap();
     }

@@ -142,7 +142,7 @@ fn grid_speed() {
 fn synthetic(rng: &mut SampleRng, k: u32, hit_rate: f32) -> RayRecord {
     let pair = SpherePair([rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()]);
     if rng.uniform() >= hit_rate {
-        return RayRecord { pair, hit: false, exits: vec![] };
+        return RayRecord { pair, hit: false, exits: vec![], vertices: vec![] };
     }
     let exits = (0..k)
         .map(|_| {
@@ -161,7 +161,7 @@ fn synthetic(rng: &mut SampleRng, k: u32, hit_rate: f32) -> RayRecord {
             Exit { position, direction, throughput, radiance: Vec3::ZERO, bounces: b }
         })
         .collect();
-    RayRecord { pair, hit: true, exits }
+    RayRecord { pair, hit: true, exits, vertices: vec![] }
 }
 
 fn dataset_size() {
@@ -180,6 +180,7 @@ fn dataset_size() {
             seed: 7,
             max_internal_bounces: 64,
             shard: None,
+            vertices: false,
         };
         let path = dir.join(format!("{label}.nppd"));
         let mut rng = SampleRng::from_seed(3);

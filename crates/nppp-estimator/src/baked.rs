@@ -3,7 +3,8 @@
 //! A baked estimator is everything the renderer needs for one
 //! (mesh, material): the quantized latent and mask grids, the decoder and the
 //! output transform, plus what it was trained for so that attaching it to the
-//! wrong object can be detected. Loading checks every size against the file
+//! wrong object can be detected, and optionally the vertex head that
+//! returns a skipped vertex for next-event estimation. Loading checks every size against the file
 //! length before allocating anything, so a damaged or hostile file gives a
 //! clear error, never a panic or a huge allocation.
 
@@ -11,6 +12,7 @@ use crate::exit::{EXIT_FEATURES, ExitTransform};
 use crate::grid::{self, GridError, MIN_RES, QuantizedGrid};
 use crate::mlp::{Dense, Mlp};
 use crate::quant;
+use crate::vertex::{VERTEX_FEATURES, VertexTransform};
 use nppp_geom::{BoundingSphere, Vec3};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
@@ -18,7 +20,12 @@ use std::path::{Path, PathBuf};
 use thiserror::Error;
 
 pub const ESTIMATOR_MAGIC: [u8; 8] = *b"NPPPEST\0";
-pub const ESTIMATOR_VERSION: u32 = 1;
+/// Version 2 added the optional vertex head (`vertex_decoder` in the
+/// header, its transform and layers after the decoder's); version 1 files
+/// (no vertex head) are still read.
+pub const ESTIMATOR_VERSION: u32 = 2;
+/// The oldest version this build reads.
+pub const ESTIMATOR_VERSION_MIN: u32 = 1;
 /// Magic, version, checksum: the part of the file the CRC does not cover.
 const PREFIX_LEN: usize = 16;
 /// A header is a few hundred bytes of JSON; anything near this is not ours.
@@ -40,7 +47,7 @@ pub enum EstimatorFileError {
     Io { path: PathBuf, err: std::io::Error },
     #[error("{}: not an nppp estimator file (wrong magic; expected \"NPPPEST\\0\")", path.display())]
     Magic { path: PathBuf },
-    #[error("{}: version {found} not supported (this build reads {ESTIMATOR_VERSION})", path.display())]
+    #[error("{}: version {found} not supported (this build reads {ESTIMATOR_VERSION_MIN} to {ESTIMATOR_VERSION}; `make bake` or `nppp bake` rebuilds it)", path.display())]
     Version { path: PathBuf, found: u32 },
     #[error("{}: checksum mismatch (file corrupted)", path.display())]
     Checksum { path: PathBuf },
@@ -81,6 +88,16 @@ pub struct BakedEstimator {
     pub mask: QuantizedGrid,
     pub decoder: Mlp,
     pub transform: ExitTransform,
+    /// The vertex head, when the model was trained on data with picked
+    /// vertices (an opaque object with a non-delta surface).
+    pub vertex: Option<VertexHead>,
+}
+
+/// The second decoder: `[z, r']` -> an encoded [`crate::PickedVertex`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct VertexHead {
+    pub decoder: Mlp,
+    pub transform: VertexTransform,
 }
 
 /// Shape of one grid as written in the header.
@@ -108,6 +125,9 @@ struct FileHeader {
     mask: GridShape,
     /// `[inputs, outputs]` of each decoder layer.
     decoder: Vec<[u32; 2]>,
+    /// The same for the vertex head, if any (version 2 on).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    vertex_decoder: Option<Vec<[u32; 2]>>,
 }
 
 fn shape(g: &QuantizedGrid) -> GridShape {
@@ -132,17 +152,27 @@ fn section_sizes(h: &FileHeader) -> Result<Vec<(String, usize)>, String> {
         v.push((format!("{name} quantization"), 8 * g.channels as usize));
         v.push((name.to_string(), bytes));
     }
-    if h.decoder.is_empty() || h.decoder.len() > MAX_DECODER_LAYERS {
-        return Err(format!("decoder has {} layers (1 to {MAX_DECODER_LAYERS} allowed)", h.decoder.len()));
-    }
-    for (i, &[ni, no]) in h.decoder.iter().enumerate() {
-        let (ni, no) = (ni as usize, no as usize);
-        if ni == 0 || no == 0 || ni > MAX_LAYER_WIDTH || no > MAX_LAYER_WIDTH {
-            return Err(format!("decoder layer {i} is {no}x{ni} (each side 1 to {MAX_LAYER_WIDTH})"));
-        }
-        v.push((format!("decoder layer {i}"), 4 * (ni * no + no)));
+    layer_sections("decoder", &h.decoder, &mut v)?;
+    if let Some(vd) = &h.vertex_decoder {
+        v.push(("vertex transform".to_string(), 8 * VERTEX_FEATURES));
+        layer_sections("vertex decoder", vd, &mut v)?;
     }
     Ok(v)
+}
+
+/// The sections of an MLP's layers (`name layer i`), sizes checked.
+fn layer_sections(name: &str, layers: &[[u32; 2]], v: &mut Vec<(String, usize)>) -> Result<(), String> {
+    if layers.is_empty() || layers.len() > MAX_DECODER_LAYERS {
+        return Err(format!("{name} has {} layers (1 to {MAX_DECODER_LAYERS} allowed)", layers.len()));
+    }
+    for (i, &[ni, no]) in layers.iter().enumerate() {
+        let (ni, no) = (ni as usize, no as usize);
+        if ni == 0 || no == 0 || ni > MAX_LAYER_WIDTH || no > MAX_LAYER_WIDTH {
+            return Err(format!("{name} layer {i} is {no}x{ni} (each side 1 to {MAX_LAYER_WIDTH})"));
+        }
+        v.push((format!("{name} layer {i}"), 4 * (ni * no + no)));
+    }
+    Ok(())
 }
 
 /// A parsed header, its section sizes, and where the sections start.
@@ -218,9 +248,17 @@ impl BakedEstimator {
         let clamped: Vec<f32> =
             mask_logits.iter().map(|&x| if x.is_nan() { x } else { x.clamp(-MASK_LOGIT_CLAMP, MASK_LOGIT_CLAMP) }).collect();
         let mask = QuantizedGrid::from_f32(mask_res, 1, &clamped, mask_bits).map_err(|e| b("mask", e))?;
-        let est = Self { meta, latent, mask, decoder, transform };
+        let est = Self { meta, latent, mask, decoder, transform, vertex: None };
         est.check().map_err(EstimatorFileError::Build)?;
         Ok(est)
+    }
+
+    /// Attaches a vertex head (checked against the estimator's latent and
+    /// noise sizes).
+    pub fn with_vertex_head(mut self, head: VertexHead) -> Result<Self, EstimatorFileError> {
+        self.vertex = Some(head);
+        self.check().map_err(EstimatorFileError::Build)?;
+        Ok(self)
     }
 
     /// Everything that must hold for the sampler to run: sizes agree between
@@ -255,14 +293,28 @@ impl BakedEstimator {
         if !t.mean.iter().all(|x| x.is_finite()) || !t.std.iter().all(|s| s.is_finite() && *s > 0.0) {
             return Err("output transform has a non-finite mean or a std that is not finite and > 0".into());
         }
+        if let Some(v) = &self.vertex {
+            v.decoder.validate().map_err(|e| format!("vertex decoder: {e}"))?;
+            if v.decoder.inputs() != want_in {
+                return Err(format!("vertex decoder takes {} inputs, latent_dim + noise_dim = {want_in}", v.decoder.inputs()));
+            }
+            if v.decoder.outputs() != VERTEX_FEATURES {
+                return Err(format!("vertex decoder gives {} outputs, a vertex has {VERTEX_FEATURES} features", v.decoder.outputs()));
+            }
+            let t = &v.transform;
+            if !t.mean.iter().all(|x| x.is_finite()) || !t.std.iter().all(|s| s.is_finite() && *s > 0.0) {
+                return Err("vertex transform has a non-finite mean or a std that is not finite and > 0".into());
+            }
+        }
         Ok(())
     }
 
     /// Bytes the runtime holds: grids and decoder (what the thesis counts,
     /// plus the small per-channel and transform parameters).
     pub fn memory_bytes(&self) -> usize {
-        let dec: usize = self.decoder.layers.iter().map(|l| 4 * (l.weight.len() + l.bias.len())).sum();
-        self.latent.memory_bytes() + self.mask.memory_bytes() + dec + 8 * EXIT_FEATURES
+        let mlp = |m: &Mlp| -> usize { m.layers.iter().map(|l| 4 * (l.weight.len() + l.bias.len())).sum() };
+        let vertex = self.vertex.as_ref().map_or(0, |v| mlp(&v.decoder) + 8 * VERTEX_FEATURES);
+        self.latent.memory_bytes() + self.mask.memory_bytes() + mlp(&self.decoder) + 8 * EXIT_FEATURES + vertex
     }
 
     /// The serialized file, checksum included.
@@ -280,6 +332,7 @@ impl BakedEstimator {
             latent: shape(&self.latent),
             mask: shape(&self.mask),
             decoder: self.decoder.layers.iter().map(|l| [l.inputs as u32, l.outputs as u32]).collect(),
+            vertex_decoder: self.vertex.as_ref().map(|v| v.decoder.layers.iter().map(|l| [l.inputs as u32, l.outputs as u32]).collect()),
         };
         // Serializing plain strings and integers cannot fail.
         let json = serde_json::to_vec(&header).unwrap_or_default();
@@ -301,6 +354,14 @@ impl BakedEstimator {
         for l in &self.decoder.layers {
             put_f32s(&mut out, &l.weight);
             put_f32s(&mut out, &l.bias);
+        }
+        if let Some(v) = &self.vertex {
+            put_f32s(&mut out, &v.transform.mean);
+            put_f32s(&mut out, &v.transform.std);
+            for l in &v.decoder.layers {
+                put_f32s(&mut out, &l.weight);
+                put_f32s(&mut out, &l.bias);
+            }
         }
         let crc = crc32fast::hash(&out[PREFIX_LEN..]);
         out[12..16].copy_from_slice(&crc.to_le_bytes());
@@ -332,7 +393,7 @@ impl BakedEstimator {
             });
         }
         let version = read_u32(bytes, 8).unwrap_or(0);
-        if version != ESTIMATOR_VERSION {
+        if !(ESTIMATOR_VERSION_MIN..=ESTIMATOR_VERSION).contains(&version) {
             return Err(EstimatorFileError::Version { path: p(), found: version });
         }
         let stored_crc = read_u32(bytes, 12).unwrap_or(0);
@@ -350,6 +411,12 @@ impl BakedEstimator {
             });
         }
         let (header, sections, start) = layout?;
+        if header.vertex_decoder.is_some() && version < 2 {
+            return Err(EstimatorFileError::Header {
+                path: p(),
+                what: format!("a vertex decoder in a version {version} file (vertex heads came with version 2)"),
+            });
+        }
         if let Some(e) = Self::truncation(&sections, start, n, path) {
             return Err(e);
         }
@@ -416,13 +483,26 @@ impl BakedEstimator {
         };
         let latent = grid(h.latent)?;
         let mask = grid(h.mask)?;
-        let mut layers = Vec::with_capacity(h.decoder.len());
-        for &[ni, no] in &h.decoder {
-            let (ni, no) = (ni as usize, no as usize);
-            let weight = c.f32s(ni * no)?;
-            let bias = c.f32s(no)?;
-            layers.push(Dense { inputs: ni, outputs: no, weight, bias });
-        }
+        let mlp = |c: &mut Cursor, shape: &[[u32; 2]]| -> Option<Mlp> {
+            let mut layers = Vec::with_capacity(shape.len());
+            for &[ni, no] in shape {
+                let (ni, no) = (ni as usize, no as usize);
+                let weight = c.f32s(ni * no)?;
+                let bias = c.f32s(no)?;
+                layers.push(Dense { inputs: ni, outputs: no, weight, bias });
+            }
+            Some(Mlp { layers })
+        };
+        let decoder = mlp(&mut c, &h.decoder)?;
+        let vertex = match &h.vertex_decoder {
+            None => None,
+            Some(shape) => {
+                let mut transform = VertexTransform::default();
+                transform.mean.copy_from_slice(&c.f32s(VERTEX_FEATURES)?);
+                transform.std.copy_from_slice(&c.f32s(VERTEX_FEATURES)?);
+                Some(VertexHead { decoder: mlp(&mut c, shape)?, transform })
+            }
+        };
         let meta = EstimatorMeta {
             mesh_name: h.mesh_name,
             mesh_hash: h.mesh_hash,
@@ -434,7 +514,7 @@ impl BakedEstimator {
             max_internal_bounces: h.max_internal_bounces,
             notes: h.notes,
         };
-        Some(Self { meta, latent, mask, decoder: Mlp { layers }, transform })
+        Some(Self { meta, latent, mask, decoder, transform, vertex })
     }
 
     /// Human-readable summary for `nppp info`.
@@ -485,6 +565,18 @@ impl BakedEstimator {
             k.bits,
             fmt_bytes(formula)
         );
+        match &self.vertex {
+            Some(v) => {
+                let macs: usize = v.decoder.layers.iter().map(|l| l.weight.len()).sum();
+                let _ = writeln!(
+                    s,
+                    "  vertex head: a skipped vertex for next-event estimation (`--entry-nee picked`), {macs} multiply-adds per sample"
+                );
+            }
+            None => {
+                let _ = writeln!(s, "  vertex head: none (`--entry-nee picked` needs the oracle or a model trained on data with vertices)");
+            }
+        }
         if !m.notes.is_empty() {
             let _ = writeln!(s, "  notes:     {}", m.notes);
         }
@@ -532,6 +624,50 @@ pub(crate) mod tests {
             transform.std[i] = 0.5 + 0.1 * i as f32;
         }
         BakedEstimator::from_f32_grids(meta, res, &latent, 2, &mask[..16], bits, decoder, transform).unwrap()
+    }
+
+    /// A vertex head for [`tiny_estimator`]'s sizes.
+    pub(crate) fn tiny_vertex_head(latent_dim: u32, noise_dim: u32) -> VertexHead {
+        let inputs = (latent_dim + noise_dim) as usize;
+        let dense = |i: usize, o: usize, salt: usize| Dense {
+            inputs: i,
+            outputs: o,
+            weight: (0..i * o).map(|k| (((k + salt) * 29 % 53) as f32 / 53.0 - 0.5) * 0.6).collect(),
+            bias: (0..o).map(|k| ((k + salt) % 7) as f32 * 0.05 - 0.15).collect(),
+        };
+        let mut transform = VertexTransform::default();
+        for i in 0..VERTEX_FEATURES {
+            transform.mean[i] = 0.02 * i as f32 - 0.1;
+            transform.std[i] = 0.3 + 0.05 * i as f32;
+        }
+        VertexHead { decoder: Mlp { layers: vec![dense(inputs, 6, 1), dense(6, VERTEX_FEATURES, 2)] }, transform }
+    }
+
+    /// Version 2: an estimator with a vertex head round-trips bit for bit;
+    /// a version 1 file (no vertex head) still loads; a version 1 file that
+    /// claims a vertex head, or a head of the wrong shape, is refused.
+    #[test]
+    fn vertex_head_round_trips_and_version_1_still_loads() {
+        let est = tiny_estimator(4, 3, 8).with_vertex_head(tiny_vertex_head(4, 3)).unwrap();
+        let bytes = est.to_bytes();
+        let back = BakedEstimator::from_bytes(&bytes, Path::new("v.nppp")).unwrap();
+        assert_eq!(back, est);
+        assert!(est.describe().contains("vertex head: a skipped vertex"));
+        let mut v1 = bytes.clone();
+        v1[8..12].copy_from_slice(&1u32.to_le_bytes());
+        let e = BakedEstimator::from_bytes(&v1, Path::new("v.nppp")).unwrap_err().to_string();
+        assert!(e.contains("a vertex decoder in a version 1 file"), "{e}");
+        let plain = tiny_estimator(4, 3, 8);
+        let mut v1 = plain.to_bytes();
+        v1[8..12].copy_from_slice(&1u32.to_le_bytes());
+        assert_eq!(BakedEstimator::from_bytes(&v1, Path::new("old.nppp")).unwrap(), plain);
+        assert!(plain.describe().contains("vertex head: none"));
+        // A head with another latent size cannot be attached.
+        let e = tiny_estimator(4, 3, 8).with_vertex_head(tiny_vertex_head(5, 3)).unwrap_err().to_string();
+        assert!(e.contains("vertex decoder takes 8 inputs"), "{e}");
+        // Truncated in the vertex head's sections: named.
+        let e = BakedEstimator::from_bytes(&bytes[..bytes.len() - 10], Path::new("v.nppp")).unwrap_err().to_string();
+        assert!(e.contains("truncated") && e.contains("vertex decoder layer 1"), "{e}");
     }
 
     fn tmpdir(name: &str) -> PathBuf {
@@ -664,7 +800,10 @@ pub(crate) mod tests {
         assert!(err_of(&b).contains("wrong magic"));
         let mut b = good.clone();
         b[8..12].copy_from_slice(&7u32.to_le_bytes());
-        assert_eq!(err_of(&b), "models/x.nppp: version 7 not supported (this build reads 1)");
+        assert_eq!(
+            err_of(&b),
+            "models/x.nppp: version 7 not supported (this build reads 1 to 2; `make bake` or `nppp bake` rebuilds it)"
+        );
         let mut b = good.clone();
         b.push(0);
         recrc(&mut b);

@@ -68,6 +68,8 @@ pub struct DecodeRepairs {
     pub inward: u32,
     /// Throughput or radiance out of range (negative, non-finite) and clamped.
     pub clamped: u32,
+    /// Picked vertices (the vertex head's) that needed a repair.
+    pub vertices: u32,
 }
 
 impl ExitTransform {
@@ -193,7 +195,7 @@ impl ExitTransform {
 /// Normalizes without overflow: a finite vector with components near f32::MAX
 /// has an infinite squared length, and plain `normalize` would turn it into
 /// zero. Scaling by the largest component first keeps it a unit vector.
-fn safe_normalize(v: Vec3) -> Option<Vec3> {
+pub(crate) fn safe_normalize(v: Vec3) -> Option<Vec3> {
     if !v.is_finite() {
         return None;
     }

@@ -1,5 +1,6 @@
 //! The estimator's data and runtime, free of any training stack: the exit
-//! sample and its learning transform, the training-data file and its shards, the baked
+//! sample and its learning transform, the picked vertex for next-event
+//! estimation and its transform, the training-data file and its shards, the baked
 //! `.nppp` file (quantized 4D latent and mask grids plus decoder weights), and
 //! the estimator interface every caller uses: [`EstimatorSampler`] (mask,
 //! latent lookup, one batched decode path) over an [`ExitDecoder`] backend
@@ -15,6 +16,7 @@ pub mod quant;
 pub mod recipe;
 pub mod sampler;
 pub mod shard;
+pub mod vertex;
 
 /// Relative margin of an estimator's bounding sphere around its mesh
 /// (`BoundingSphere::around`): no vertex may lie on the sphere itself, or
@@ -22,7 +24,7 @@ pub mod shard;
 /// renderer must use the same sphere, so this has one home.
 pub const SPHERE_MARGIN: f32 = 0.01;
 
-pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
+pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta, VertexHead};
 pub use dataset::{DatasetError, DatasetHeader, DatasetReader, DatasetSummary, DatasetWriter, RayRecord, WriterOptions};
 pub use decoder::{CpuDecoder, ExitDecoder};
 pub use exit::{
@@ -32,3 +34,4 @@ pub use grid::{QuantizedGrid, node_coords, node_count};
 pub use mlp::{Dense, Mlp};
 pub use quant::{QuantError, dequantize, quantize};
 pub use sampler::{DecodedBatch, EstimatorSampler, ExitBatch};
+pub use vertex::{PickedVertex, VERTEX_FEATURES, VERTEX_THROUGHPUT_BOUND, VertexTransform};

@@ -11,6 +11,7 @@
 use crate::baked::{BakedEstimator, EstimatorFileError, EstimatorMeta};
 use crate::decoder::{CpuDecoder, ExitDecoder};
 use crate::exit::{DecodeRepairs, EXIT_FEATURES, Exit};
+use crate::vertex::{PickedVertex, VERTEX_FEATURES};
 use nppp_geom::SpherePair;
 
 pub struct EstimatorSampler {
@@ -20,6 +21,9 @@ pub struct EstimatorSampler {
     cpu: CpuDecoder,
     /// Another decoder backend, when one was attached.
     backend: Option<Box<dyn ExitDecoder>>,
+    /// The vertex head's decoder (always plain Rust: it runs on the rows the
+    /// exit decoder just ran on, whose latents it reuses).
+    vertex_cpu: Option<CpuDecoder>,
     latent_dim: usize,
     noise_dim: usize,
     /// The most throughput per channel a decoded exit keeps
@@ -34,6 +38,7 @@ pub struct ExitBatch {
     inputs: Vec<f32>,
     features: Vec<f32>,
     exits: Vec<Exit>,
+    vertices: Vec<PickedVertex>,
 }
 
 /// What [`EstimatorSampler::sample_batch`] gives back.
@@ -62,7 +67,8 @@ impl EstimatorSampler {
         let latent_dim = baked.meta.latent_dim as usize;
         let noise_dim = baked.meta.noise_dim as usize;
         let cpu = CpuDecoder::new(&baked.decoder);
-        Ok(Self { baked, cpu, backend: None, latent_dim, noise_dim, throughput_bound: crate::EXIT_THROUGHPUT_BOUND })
+        let vertex_cpu = baked.vertex.as_ref().map(|v| CpuDecoder::new(&v.decoder));
+        Ok(Self { baked, cpu, backend: None, vertex_cpu, latent_dim, noise_dim, throughput_bound: crate::EXIT_THROUGHPUT_BOUND })
     }
 
     /// Runs the decoder on `backend` instead of the CPU decoder (which still
@@ -177,6 +183,43 @@ impl EstimatorSampler {
         DecodedBatch { exits: &batch.exits, fell_back }
     }
 
+    /// Whether the file has a vertex head ([`Self::sample_vertices`]).
+    pub fn has_vertex_head(&self) -> bool {
+        self.vertex_cpu.is_some()
+    }
+
+    /// The vertex head on the rows of the last [`Self::sample_batch`] call
+    /// on `batch`: each row keeps its latent, and `noise(row, r)` writes its
+    /// own `noise_dim` standard normals (in row order). Returns one picked
+    /// vertex per row (unit sphere frame), or `None` without a vertex head.
+    /// The vertex is drawn independently of the row's exit (see
+    /// [`crate::vertex`]).
+    pub fn sample_vertices<'b>(
+        &self,
+        batch: &'b mut ExitBatch,
+        mut noise: impl FnMut(usize, &mut [f32]),
+        repairs: &mut DecodeRepairs,
+    ) -> Option<&'b [PickedVertex]> {
+        let (cpu, head) = (self.vertex_cpu.as_ref()?, self.baked.vertex.as_ref()?);
+        let (ld, width) = (self.latent_dim, self.latent_dim + self.noise_dim);
+        let rows = batch.inputs.len() / width.max(1);
+        for (k, row) in batch.inputs.chunks_exact_mut(width).enumerate() {
+            noise(k, &mut row[ld..]);
+        }
+        batch.features.clear();
+        batch.features.resize(rows * VERTEX_FEATURES, 0.0);
+        cpu.forward(&batch.inputs, &mut batch.features);
+        let max_b = self.baked.meta.max_internal_bounces;
+        batch.vertices.clear();
+        batch.vertices.extend(batch.features.chunks_exact(VERTEX_FEATURES).map(|f| {
+            let f: &[f32; VERTEX_FEATURES] = f.try_into().unwrap_or(&[0.0; VERTEX_FEATURES]);
+            let (v, repaired) = head.transform.decode(f, max_b);
+            repairs.vertices += u32::from(repaired);
+            v
+        }));
+        Some(&batch.vertices)
+    }
+
     /// One exit for the chord `pair`, driven by `r` (`noise_dim` standard
     /// normals; missing ones count as 0), through [`Self::sample_batch`].
     /// Allocates a batch: for tools and tests, not for a loop over rays.
@@ -230,6 +273,60 @@ mod tests {
         }
         fn name(&self) -> &str {
             "test"
+        }
+    }
+
+    /// The vertex head reuses each row's latent, takes its own noise, and
+    /// gives what the head's decoder and transform give by hand.
+    #[test]
+    fn vertex_head_decodes_the_rows_latents_with_its_own_noise() {
+        use crate::baked::tests::tiny_vertex_head;
+        let plain = EstimatorSampler::new(tiny_estimator(4, 3, 8));
+        let mut batch = ExitBatch::default();
+        let mut rep = DecodeRepairs::default();
+        assert!(!plain.has_vertex_head());
+        assert!(plain.sample_vertices(&mut batch, |_, _| {}, &mut rep).is_none());
+        let est = tiny_estimator(4, 3, 8).with_vertex_head(tiny_vertex_head(4, 3)).unwrap();
+        let s = EstimatorSampler::new(est.clone());
+        assert!(s.has_vertex_head());
+        let pairs = [SpherePair([0.3, 0.9, 0.6, 0.2]), SpherePair([0.0, 0.1, 0.9, 0.5])];
+        let exit_noise = [0.5f32, -1.0, 2.0];
+        let vertex_noise = [[0.1f32, 0.2, -0.3], [1.5, -0.5, 0.0]];
+        s.sample_batch(
+            &mut batch,
+            2,
+            |k, z, r| {
+                s.latent(&pairs[k], z);
+                r.copy_from_slice(&exit_noise);
+            },
+            &mut rep,
+        );
+        let mut order = Vec::new();
+        let verts = s
+            .sample_vertices(
+                &mut batch,
+                |k, r| {
+                    order.push(k);
+                    r.copy_from_slice(&vertex_noise[k]);
+                },
+                &mut rep,
+            )
+            .unwrap()
+            .to_vec();
+        assert_eq!(order, [0, 1]);
+        let head = est.vertex.as_ref().unwrap();
+        for k in 0..2 {
+            let mut z = [0.0f32; 4];
+            est.latent.interpolate(&pairs[k], &mut z);
+            let input: Vec<f32> = z.iter().chain(&vertex_noise[k]).copied().collect();
+            let mut f = [0.0f32; VERTEX_FEATURES];
+            head.decoder.forward_batch(&input, &mut f);
+            let (want, _) = head.transform.decode(&f, 64);
+            let got = verts[k];
+            assert!(got.position.distance(want.position) < 1e-5, "{got:?} {want:?}");
+            assert!(got.normal.distance(want.normal) < 1e-4 && got.wo.distance(want.wo) < 1e-4);
+            assert!((got.beta - want.beta).abs().max_element() <= 1e-4 * (1.0 + want.beta.max_element()));
+            assert_eq!(got.index, want.index);
         }
     }
 

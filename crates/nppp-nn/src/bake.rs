@@ -12,7 +12,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
 use nppp_estimator::grid::{checked_node_count, node_coords};
 use nppp_estimator::{
-    BakedEstimator, DecodeRepairs, EstimatorMeta, EstimatorSampler, Exit, ExitBatch,
+    BakedEstimator, VertexHead, DecodeRepairs, EstimatorMeta, EstimatorSampler, Exit, ExitBatch,
 };
 use nppp_geom::SpherePair;
 use serde::{Deserialize, Serialize};
@@ -345,7 +345,20 @@ pub fn assemble(
         ),
     };
     let decoder = loaded.model.export_decoder()?;
-    BakedEstimator::from_f32_grids_with_mask_bits(
+    let vertex = match (
+        loaded.model.export_vertex_decoder()?,
+        &loaded.meta.vertex_transform,
+    ) {
+        (Some(decoder), Some(transform)) => Some(VertexHead {
+            decoder,
+            transform: transform.clone(),
+        }),
+        (None, None) => None,
+        _ => bail!(
+            "the model folder's vertex head and its meta.json's vertex_transform do not come              together (one is missing): retrain with `nppp train`"
+        ),
+    };
+    let baked = BakedEstimator::from_f32_grids_with_mask_bits(
         meta,
         grids.latent_res,
         &grids.latent,
@@ -356,7 +369,13 @@ pub fn assemble(
         decoder,
         loaded.meta.transform.clone(),
     )
-    .context("assembling the estimator")
+    .context("assembling the estimator")?;
+    match vertex {
+        Some(v) => baked
+            .with_vertex_head(v)
+            .context("assembling the estimator's vertex head"),
+        None => Ok(baked),
+    }
 }
 
 /// Largest |dequantized node value - f32 value| in quantization steps.
@@ -405,7 +424,7 @@ pub fn load_heldout(loaded: &LoadedModel, data: Option<&Path>, quiet: bool) -> R
             loaded.meta.dataset.material_name
         );
     }
-    crate::data::encode_split(rays, header.k as usize, &loaded.meta.transform, true)
+    crate::data::encode_split(rays, header.k as usize, &loaded.meta.transform, None, true)
 }
 
 fn eval_pair(

@@ -3,7 +3,7 @@
 //! array, split deterministically into a training and a held-out part.
 
 use anyhow::{Result, bail};
-use nppp_estimator::{EXIT_FEATURES, Exit, ExitTransform};
+use nppp_estimator::{EXIT_FEATURES, Exit, ExitTransform, VERTEX_FEATURES, VertexTransform};
 use nppp_geom::SpherePair;
 
 use crate::features::{INPUT_FEATURES, ray_features};
@@ -26,6 +26,9 @@ pub struct DataSplit {
     /// The raw exits of the hit rays (`[hit_index.len()][k]`); kept only for
     /// the held-out part, where the evaluation needs physical throughputs.
     pub raw_exits: Vec<Exit>,
+    /// `[hit_index.len()][k][VERTEX_FEATURES]`, encoded with the vertex
+    /// transform; empty when the data has no picked vertices.
+    pub vertices: Vec<f32>,
 }
 
 impl DataSplit {
@@ -48,6 +51,9 @@ pub struct TrainingData {
     /// Exits per hit ray in the file.
     pub k: usize,
     pub transform: ExitTransform,
+    /// The picked vertices' transform, when the data has vertices (the
+    /// model then trains its vertex head).
+    pub vertex_transform: Option<VertexTransform>,
     pub train: DataSplit,
     pub heldout: DataSplit,
 }
@@ -69,6 +75,9 @@ fn check_ray(i: usize, r: &RaySample, k: usize) -> Result<()> {
             "ray {i}: sphere-pair coordinates {:?} are not in [0, 1]",
             r.pair.0
         );
+    }
+    if !r.vertices.is_empty() && r.vertices.len() != r.exits.len() {
+        bail!("ray {i}: {} picked vertices for {} exits", r.vertices.len(), r.exits.len());
     }
     if r.hit {
         if r.exits.len() != k {
@@ -98,6 +107,7 @@ pub fn encode_split(
     rays: Vec<RaySample>,
     k: usize,
     transform: &ExitTransform,
+    vertex_transform: Option<&VertexTransform>,
     keep_raw: bool,
 ) -> Result<DataSplit> {
     if k == 0 {
@@ -114,6 +124,15 @@ pub fn encode_split(
             }
             if keep_raw {
                 s.raw_exits.extend_from_slice(&r.exits);
+            }
+            if let Some(vt) = vertex_transform {
+                if r.vertices.len() != k {
+                    bail!("ray {i}: a hit without its {k} picked vertices in data that has them");
+                }
+                s.vertices.reserve(k * VERTEX_FEATURES);
+                for v in &r.vertices {
+                    s.vertices.extend_from_slice(&vt.encode(v));
+                }
             }
         }
         s.pairs.push(r.pair);
@@ -141,6 +160,17 @@ impl TrainingData {
                 .filter(|(i, r)| r.hit && !is_heldout(*i, holdout_every))
                 .flat_map(|(_, r)| r.exits.iter()),
         );
+        // Vertices are learned when every hit carries them (a data set
+        // without them, version 1 or a glass object, trains the exits alone).
+        let has_vertices = rays.iter().any(|r| r.hit) && rays.iter().all(|r| !r.hit || !r.vertices.is_empty());
+        let vertex_transform = has_vertices.then(|| {
+            VertexTransform::fit(
+                rays.iter()
+                    .enumerate()
+                    .filter(|(i, r)| r.hit && !is_heldout(*i, holdout_every))
+                    .flat_map(|(_, r)| r.vertices.iter()),
+            )
+        });
         let (mut train, mut held) = (Vec::new(), Vec::new());
         for (i, r) in rays.into_iter().enumerate() {
             if is_heldout(i, holdout_every) {
@@ -149,14 +179,15 @@ impl TrainingData {
                 train.push(r);
             }
         }
-        let train = encode_split(train, k, &transform, false)?;
-        let heldout = encode_split(held, k, &transform, true)?;
+        let train = encode_split(train, k, &transform, vertex_transform.as_ref(), false)?;
+        let heldout = encode_split(held, k, &transform, vertex_transform.as_ref(), true)?;
         if train.hits() == 0 {
             bail!("the training part has no ray that hits the mesh: nothing to learn exits from");
         }
         Ok(Self {
             k,
             transform,
+            vertex_transform,
             train,
             heldout,
         })

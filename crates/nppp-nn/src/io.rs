@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
-use nppp_estimator::{DatasetHeader, DatasetReader, ExitTransform};
+use nppp_estimator::{DatasetHeader, DatasetReader, ExitTransform, VertexTransform};
 use nppp_geom::BoundingSphere;
 use serde::{Deserialize, Serialize};
 
@@ -31,6 +31,7 @@ pub fn synthetic_header(name: &str, k: usize) -> DatasetInfo {
         seed: 0,
         max_internal_bounces: 64,
         shard: None,
+        vertices: false,
     }
 }
 
@@ -46,6 +47,10 @@ pub struct ModelMeta {
     /// The target transform the decoder's outputs are expressed in.
     pub transform: ExitTransform,
     pub input_features: usize,
+    /// The vertex head's target transform (a model trained on data with
+    /// picked vertices); absent in older model folders.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vertex_transform: Option<VertexTransform>,
 }
 
 impl ModelMeta {
@@ -59,6 +64,7 @@ impl ModelMeta {
             data_path: std::path::absolute(&data_path).unwrap_or(data_path),
             transform,
             input_features: crate::features::INPUT_FEATURES,
+            vertex_transform: None,
         }
     }
 }
@@ -76,8 +82,10 @@ const MEM_PER_RAY: u64 = (size_of::<RaySample>()
     + size_of::<nppp_geom::SpherePair>()
     + 4 * crate::features::INPUT_FEATURES
     + 16) as u64;
-const MEM_PER_EXIT: u64 =
-    (2 * size_of::<nppp_estimator::Exit>() + 4 * nppp_estimator::EXIT_FEATURES) as u64;
+const MEM_PER_EXIT: u64 = (2 * size_of::<nppp_estimator::Exit>()
+    + 4 * nppp_estimator::EXIT_FEATURES
+    + size_of::<nppp_estimator::PickedVertex>()
+    + 4 * nppp_estimator::VERTEX_FEATURES) as u64;
 
 /// How many times its own size a data file may claim in memory. Real files
 /// take 10 to 20 times their size once loaded (exits are stored in about 8

@@ -10,7 +10,7 @@ use burn::module::{Module, Param};
 use burn::nn::Linear;
 use burn::tensor::activation::relu;
 use burn::tensor::{Device, Tensor, TensorData};
-use nppp_estimator::{Dense, EXIT_FEATURES, Mlp};
+use nppp_estimator::{Dense, EXIT_FEATURES, Mlp, VERTEX_FEATURES};
 use nppp_geom::SampleRng;
 
 use crate::features::INPUT_FEATURES;
@@ -48,6 +48,12 @@ pub struct ModelConfig {
     /// trained with another feature map is refused rather than misread.
     #[config(default = 45)]
     pub input_features: usize,
+    /// A second decoder, of the decoder's shape, that draws the vertex of
+    /// the skipped path picked for next-event estimation
+    /// ([`nppp_estimator::PickedVertex`]) from the same latent with its own
+    /// noise. On when the training data has vertices.
+    #[config(default = false)]
+    pub vertex_head: bool,
 }
 
 impl ModelConfig {
@@ -199,12 +205,15 @@ impl MlpNet {
 /// Encoder (ray -> z), decoder ((z, r) -> encoded exit) and mask network
 /// (ray -> logit). The mask network is separate from the encoder, as in the
 /// thesis: it trains on every ray (hits and misses) while the encoder only
-/// sees hits, and neither task's gradients disturb the other.
+/// sees hits, and neither task's gradients disturb the other. The optional
+/// vertex decoder ((z, r') -> encoded picked vertex) shares the latent, so
+/// the baked grid serves both.
 #[derive(Module, Debug)]
 pub struct NpppModel {
     pub encoder: MlpNet,
     pub decoder: MlpNet,
     pub mask: MlpNet,
+    pub vertex_decoder: Option<MlpNet>,
 }
 
 impl NpppModel {
@@ -237,10 +246,25 @@ impl NpppModel {
             &mut rng,
             device,
         );
+        // Drawn last, so a model without the head starts from the same
+        // weights as before it existed.
+        let vertex_decoder = cfg.vertex_head.then(|| {
+            MlpNet::init(
+                &layer_widths(
+                    cfg.latent_dim + cfg.noise_dim,
+                    cfg.decoder_width,
+                    cfg.decoder_layers,
+                    VERTEX_FEATURES,
+                ),
+                &mut rng,
+                device,
+            )
+        });
         Ok(Self {
             encoder,
             decoder,
             mask,
+            vertex_decoder,
         })
     }
 
@@ -259,6 +283,21 @@ impl NpppModel {
         self.decoder.forward(x).reshape([b, k, EXIT_FEATURES])
     }
 
+    /// The vertex head's k draws per ray, as [`Self::generate_from_latent`]
+    /// (`None` without the head). Returns `[B, k, VERTEX_FEATURES]`.
+    pub fn generate_vertices_from_latent(
+        &self,
+        z: Tensor<2>,
+        noise: Tensor<2>,
+        k: usize,
+    ) -> Option<Tensor<3>> {
+        let head = self.vertex_decoder.as_ref()?;
+        let [b, l] = z.dims();
+        let zk = z.unsqueeze_dim::<3>(1).repeat_dim(1, k).reshape([b * k, l]);
+        let x = Tensor::cat(vec![zk, noise], 1);
+        Some(head.forward(x).reshape([b, k, VERTEX_FEATURES]))
+    }
+
     pub fn generate(&self, features: Tensor<2>, noise: Tensor<2>, k: usize) -> Tensor<3> {
         self.generate_from_latent(self.encode(features), noise, k)
     }
@@ -272,5 +311,13 @@ impl NpppModel {
     /// The decoder in the renderer's format.
     pub fn export_decoder(&self) -> Result<Mlp> {
         self.decoder.to_mlp().context("exporting the decoder")
+    }
+
+    /// The vertex decoder in the renderer's format, if the model has one.
+    pub fn export_vertex_decoder(&self) -> Result<Option<Mlp>> {
+        self.vertex_decoder
+            .as_ref()
+            .map(|h| h.to_mlp().context("exporting the vertex decoder"))
+            .transpose()
     }
 }

@@ -100,11 +100,13 @@ impl SyntheticObject {
                         pair,
                         hit: true,
                         exits,
+                        vertices: Vec::new(),
                     },
                     None => RaySample {
                         pair,
                         hit: false,
                         exits: Vec::new(),
+                        vertices: Vec::new(),
                     },
                 }
             })

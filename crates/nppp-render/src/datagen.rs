@@ -9,15 +9,23 @@
 //! traced in parallel in batches and written in ray order, so the file is
 //! byte-identical at any thread count, and one exit can be re-traced alone
 //! when a test or a bug report needs it.
+//!
+//! For an object with a non-delta surface each exit also carries the vertex
+//! of its walk picked for next-event estimation ([`PickedVertex`]), drawn
+//! after the walk from the same stream, so the exits are the same with or
+//! without it.
 
 use crate::accel::Blas;
 use crate::medium::Medium;
-use crate::object_walk::{ObjectTracer, Walk};
+use crate::bsdf::Bsdf;
+use crate::estimator::pick_skipped;
+use crate::object_walk::{ObjectTracer, Walk, WalkVertex};
 use crate::surface::SurfaceKind;
 use glam::Vec3;
 use nppp_estimator::dataset::MAX_K;
 use nppp_estimator::{
-    DatasetError, DatasetHeader, DatasetSummary, DatasetWriter, Exit, RayRecord, WriterOptions,
+    DatasetError, DatasetHeader, DatasetSummary, DatasetWriter, Exit, PickedVertex, RayRecord,
+    WriterOptions,
 };
 use nppp_geom::sphere_pair::unit_sphere_chord;
 use nppp_geom::{BoundingSphere, Ray, SampleRng, SpherePair};
@@ -171,6 +179,7 @@ impl GenObject {
             seed: cfg.seed,
             max_internal_bounces: cfg.max_internal_bounces,
             shard: None,
+            vertices: picked_vertex_bsdf(SurfaceKind::of(&self.material)).is_some(),
         }
     }
 }
@@ -261,7 +270,19 @@ pub fn exit_rng(seed: u64, index: u64, j: u32) -> SampleRng {
     SampleRng::new(seed, index, 1 + u64::from(j))
 }
 
-/// One input ray with its label and, for a hit, its k exits.
+/// The BSDF whose vertices get a light sample through the estimator
+/// (next-event estimation at a picked vertex): a non-delta surface. Glass
+/// (delta) and translucent objects (light is behind a smooth boundary) have
+/// none, and their data no vertices.
+pub fn picked_vertex_bsdf(surface: SurfaceKind) -> Option<Bsdf> {
+    match surface {
+        SurfaceKind::Scatter(b) if !b.is_delta() => Some(b),
+        _ => None,
+    }
+}
+
+/// One input ray with its label and, for a hit, its k exits (and their
+/// picked vertices, for an object with [`picked_vertex_bsdf`]).
 pub fn trace_ray(tracer: &ObjectTracer, seed: u64, index: u64, k: u32) -> RayRecord {
     let (pair, ray) = input_ray(seed, index);
     if !tracer.hits(&ray) {
@@ -269,23 +290,55 @@ pub fn trace_ray(tracer: &ObjectTracer, seed: u64, index: u64, k: u32) -> RayRec
             pair,
             hit: false,
             exits: Vec::new(),
+            vertices: Vec::new(),
         };
     }
-    let mut exits = Vec::with_capacity(k as usize);
+    let nee_bsdf = picked_vertex_bsdf(tracer.surface);
+    let mut walks: Vec<(Exit, Option<PickedVertex>)> = Vec::with_capacity(k as usize);
     (0..k)
         .into_par_iter()
         .with_min_len(EXITS_PER_TASK)
-        .map(|j| match tracer.walk(&ray, &mut exit_rng(seed, index, j)) {
-            Walk::Exit(e) => e,
-            // `walk` starts with the same query as `hits`, so this cannot
-            // happen; if it did, the light went straight through.
-            Walk::Miss => straight_through(&ray),
+        .map_init(Vec::new, |verts: &mut Vec<WalkVertex>, j| {
+            let mut rng = exit_rng(seed, index, j);
+            verts.clear();
+            let walk = match nee_bsdf {
+                None => tracer.walk(&ray, &mut rng),
+                Some(_) => tracer.walk_recording(&ray, &mut rng, |v| verts.push(v)),
+            };
+            let exit = match walk {
+                Walk::Exit(e) => e,
+                // `walk` starts with the same query as `hits`, so this cannot
+                // happen; if it did, the light went straight through.
+                Walk::Miss => straight_through(&ray),
+            };
+            let picked = nee_bsdf.map(|bsdf| {
+                let u = rng.uniform();
+                let skipped = pick_skipped(verts, bsdf, tracer.max_internal_bounces, u);
+                match skipped.nee {
+                    Some((v, _)) => PickedVertex {
+                        position: tracer.sphere.to_unit_point(v.point),
+                        normal: v.ns,
+                        wo: v.wo,
+                        beta: v.beta,
+                        index: v.index,
+                    },
+                    // No vertex to light (the walk missed): zero throughput.
+                    None => PickedVertex {
+                        normal: Vec3::Z,
+                        wo: Vec3::Z,
+                        ..PickedVertex::default()
+                    },
+                }
+            });
+            (exit, picked)
         })
-        .collect_into_vec(&mut exits);
+        .collect_into_vec(&mut walks);
+    let vertices = walks.iter().filter_map(|w| w.1).collect();
     RayRecord {
         pair,
         hit: true,
-        exits,
+        exits: walks.into_iter().map(|w| w.0).collect(),
+        vertices,
     }
 }
 

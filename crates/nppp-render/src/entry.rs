@@ -7,7 +7,7 @@
 
 use crate::estimator::{
     EntryNee, EstimatorEntry, EstimatorModel, EstimatorStats, Estimators, LatentLookup,
-    SkippedVertices, first_vertex_skipped, pick_skipped,
+    SkippedVertices, first_vertex_skipped, network_skipped, pick_skipped,
 };
 use crate::object_walk::{Walk, WalkVertex};
 use crate::path::PathState;
@@ -86,6 +86,25 @@ impl EntryBatch {
                     for (&i, exit) in rows.iter().zip(decoded.exits) {
                         self.exits[i] = *exit;
                     }
+                    // Picked-vertex NEE: the vertex head on the same rows
+                    // (their latents), with its own noise from each path.
+                    if let (true, SurfaceKind::Scatter(bsdf)) =
+                        (est.entry_nee.is_picked(), est.surface)
+                    {
+                        let noise = |k: usize, r: &mut [f32]| {
+                            let rng = &mut paths[entries[rows[k]].0].rng;
+                            r.iter_mut().for_each(|v| *v = rng.normal());
+                        };
+                        if let Some(verts) =
+                            sampler.sample_vertices(&mut self.decode, noise, &mut stats.repairs)
+                        {
+                            for (&i, v) in rows.iter().zip(verts) {
+                                let depth = paths[self.entries[i].0].depth;
+                                let budget = max_bounces.saturating_sub(depth);
+                                self.skipped[i] = network_skipped(v, &est.sphere, bsdf, budget);
+                            }
+                        }
+                    }
                     let max_b = sampler.meta().max_internal_bounces;
                     if let (EntryNee::FirstVertex, SurfaceKind::Scatter(bsdf)) =
                         (est.entry_nee, est.surface)
@@ -152,6 +171,13 @@ impl EntryBatch {
                                 EntryNee::PickedVertex => {
                                     let u_pick = path.rng.uniform();
                                     pick_skipped(verts, bsdf, budget, u_pick)
+                                }
+                                EntryNee::PickedVertexLightOnly => {
+                                    let u_pick = path.rng.uniform();
+                                    SkippedVertices {
+                                        light_alone: true,
+                                        ..pick_skipped(verts, bsdf, budget, u_pick)
+                                    }
                                 }
                             };
                         }

@@ -120,9 +120,24 @@ pub enum EntryNee {
     /// estimator file; exact for the oracle.
     FirstVertex,
     /// One vertex of the skipped path, picked in proportion to its
-    /// throughput; MIS against the last vertex's BSDF sample. Needs the
-    /// estimator to return the vertex: the oracle only, so far.
+    /// throughput. The oracle weights its light sample by MIS against the
+    /// last vertex's BSDF sample (the exit ray's emitter hit). A network
+    /// draws the vertex from its vertex head, independently of the exit, so
+    /// there is no last vertex to weight against: the light sample counts
+    /// alone and the exit's emitter hit counts 0 (as [`Self::PickedVertexLightOnly`]).
+    /// Needs the oracle or an estimator file with a vertex head.
     PickedVertex,
+    /// [`Self::PickedVertex`] without MIS, for any estimator: the light at
+    /// the skipped vertices is the light sample's alone, an emitter hit by
+    /// the exit ray counts 0. Lets the oracle measure the network's scheme.
+    PickedVertexLightOnly,
+}
+
+impl EntryNee {
+    /// Whether the estimator returns a picked vertex of the skipped path.
+    pub fn is_picked(self) -> bool {
+        matches!(self, EntryNee::PickedVertex | EntryNee::PickedVertexLightOnly)
+    }
 }
 
 /// The skipped vertices of one entry as the renderer uses them (mesh space).
@@ -136,6 +151,11 @@ pub struct SkippedVertices {
     /// (the exit direction); `None` for a delta lobe or no vertex (an emitter
     /// hit next counts with MIS weight 1).
     pub last: Option<(Vec3, f32)>,
+    /// The light at the skipped vertices is the light sample's alone (MIS
+    /// weight 1) and an emitter hit by the exit ray counts 0; `last` is then
+    /// unused. The picked-vertex scheme of a network, whose vertex is not
+    /// tied to its exit.
+    pub light_alone: bool,
 }
 
 /// Picks the vertex for next-event estimation among `verts` (those before
@@ -155,7 +175,7 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
     };
     let total: f32 = verts.iter().map(weight).sum();
     if bsdf.is_delta() || !total.is_finite() || total <= 0.0 {
-        return SkippedVertices { nee: None, last };
+        return SkippedVertices { nee: None, last, light_alone: false };
     }
     let mut target = u * total;
     let mut chosen = None;
@@ -174,7 +194,34 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
         v.beta *= total / w;
         (v, bsdf)
     });
-    SkippedVertices { nee, last }
+    SkippedVertices { nee, last, light_alone: false }
+}
+
+/// The picked vertex a network's vertex head returned (unit sphere frame)
+/// as the renderer uses it: mesh space, no light sample when it carries no
+/// throughput or lies past the `budget` of bounces left, and the light at
+/// the skipped vertices counted by the light sample alone.
+pub fn network_skipped(
+    v: &nppp_estimator::PickedVertex,
+    sphere: &BoundingSphere,
+    bsdf: Bsdf,
+    budget: u32,
+) -> SkippedVertices {
+    let usable = v.beta.max_element() > 0.0 && v.index < budget && !bsdf.is_delta();
+    let nee = usable.then(|| {
+        let vertex = WalkVertex {
+            point: sphere.from_unit_point(v.position),
+            ng: v.normal,
+            ns: v.normal,
+            wo: v.wo,
+            beta: v.beta,
+            index: v.index,
+            pdf: 0.0,
+            delta: false,
+        };
+        (vertex, bsdf)
+    });
+    SkippedVertices { nee, last: None, light_alone: true }
 }
 
 /// First-vertex NEE for one entry: the light sample at `first` (if it fits
@@ -204,6 +251,7 @@ pub fn first_vertex_skipped(
     SkippedVertices {
         nee: Some((v, bsdf)),
         last,
+        light_alone: false,
     }
 }
 
@@ -255,6 +303,7 @@ impl EstimatorStats {
         self.repairs.degenerate += o.repairs.degenerate;
         self.repairs.inward += o.repairs.inward;
         self.repairs.clamped += o.repairs.clamped;
+        self.repairs.vertices += o.repairs.vertices;
     }
 }
 

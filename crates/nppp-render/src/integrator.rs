@@ -261,6 +261,7 @@ fn light_skipped_vertex(
     };
     let x = &scene.accel.instances[instance as usize];
     let p = x.point_to_world(v.point);
+    let mis = !skipped.light_alone;
     let ng = x.dir_to_world(v.ng).normalize();
     let ns = x.dir_to_world(v.ns).normalize();
     let wo_world = x.dir_to_world(v.wo).normalize();
@@ -272,7 +273,8 @@ fn light_skipped_vertex(
         wo: frame.to_local(wo_world),
         eps: scene.offset_at(p, instance),
     };
-    path.radiance += path.beta * v.beta * sample_ld(scene, bsdf, &vertex, u_light, u_light2, work);
+    path.radiance +=
+        path.beta * v.beta * sample_ld_weighted(scene, bsdf, &vertex, u_light, u_light2, mis, work);
 }
 
 /// Continues a path from an estimator exit. The exit ray starts from the exit
@@ -305,6 +307,14 @@ fn follow_exit(
     path.origin = x.point_to_world(sphere.from_unit_point(origin_unit));
     path.dir = x.dir_to_world(e.direction).normalize();
     match skipped.last {
+        // The light at the skipped vertices was the light sample's alone:
+        // an emitter hit next counts 0 (a BSDF pdf of 0 in the MIS weight;
+        // every emitter can be light-sampled).
+        _ if skipped.light_alone => {
+            path.prev_delta = false;
+            path.prev_pdf = 0.0;
+            path.prev_point = path.origin;
+        }
         // Light was sampled at the skipped vertices: an emitter hit next is
         // the BSDF technique of the last one, weighted against it.
         Some((last, pdf)) => {
@@ -498,6 +508,21 @@ pub fn sample_ld(
     u_light2: Vec2,
     work: &mut WorkCounts,
 ) -> Vec3 {
+    sample_ld_weighted(scene, bsdf, v, u_light, u_light2, true, work)
+}
+
+/// [`sample_ld`], with the MIS weight against the vertex's BSDF sample
+/// (`mis`), or alone (weight 1: no BSDF sample of this vertex will count
+/// an emitter it hits).
+pub fn sample_ld_weighted(
+    scene: &RenderScene,
+    bsdf: &Bsdf,
+    v: &SurfaceVertex,
+    u_light: f32,
+    u_light2: Vec2,
+    mis: bool,
+    work: &mut WorkCounts,
+) -> Vec3 {
     if bsdf.is_delta() || scene.lights.is_empty() {
         return Vec3::ZERO;
     }
@@ -523,6 +548,6 @@ pub fn sample_ld(
     if scene.plain().occluded(origin, ls.wi, tmax) {
         return Vec3::ZERO;
     }
-    let w = power_heuristic(ls.pdf, bsdf_pdf);
+    let w = if mis { power_heuristic(ls.pdf, bsdf_pdf) } else { 1.0 };
     f * ls.radiance * (w / ls.pdf)
 }

@@ -122,10 +122,11 @@ fn oracle_matches_path_tracing_at_every_p() {
 
 /// Next-event estimation through the estimator (issue 18): the oracle that
 /// samples the lights at one skipped vertex per entry (picked by throughput,
-/// or the first), with the exit's emitter hit weighted by MIS against it,
-/// still matches plain PT at every P, and its noise falls well below the
-/// oracle's without it (which only finds the lamp when an exit ray happens
-/// to hit it).
+/// or the first), with the exit's emitter hit weighted by MIS against it
+/// (or, a network's scheme, the light sample alone and the exit's emitter
+/// hit counted 0), still matches plain PT at every P, and its noise falls
+/// well below the oracle's without it (which only finds the lamp when an
+/// exit ray happens to hit it).
 #[test]
 fn oracle_with_entry_nee_matches_path_tracing_and_cuts_its_noise() {
     let json = room(
@@ -139,7 +140,11 @@ fn oracle_with_entry_nee_matches_path_tracing_and_cuts_its_noise() {
     for p in [0, 1, 2] {
         let (plain, _) = render_mode_nee(&json, EstimatorMode::Oracle, p, 64, 5, 2, EntryNee::Off);
         let e_plain = err(&plain);
-        for nee_mode in [EntryNee::PickedVertex, EntryNee::FirstVertex] {
+        for nee_mode in [
+            EntryNee::PickedVertex,
+            EntryNee::FirstVertex,
+            EntryNee::PickedVertexLightOnly,
+        ] {
             let (nee, st) = render_mode_nee(&json, EstimatorMode::Oracle, p, 64, 5, 2, nee_mode);
             assert!(st.estimators.entries > 1000, "P={p}: barely used");
             let (big, _) = render_mode_nee(&json, EstimatorMode::Oracle, p, 1024, 5, 3, nee_mode);

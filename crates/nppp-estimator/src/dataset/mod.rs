@@ -9,6 +9,7 @@
 //! trainer can stream (or randomly access) chunks in bounded memory.
 
 use crate::exit::Exit;
+use crate::vertex::PickedVertex;
 use nppp_geom::{BoundingSphere, SpherePair, Vec3};
 use serde::{Deserialize, Serialize};
 use std::io::{BufReader, Read, Seek, SeekFrom, Write};
@@ -16,7 +17,11 @@ use std::path::{Path, PathBuf};
 use thiserror::Error;
 
 pub const DATASET_MAGIC: [u8; 8] = *b"NPPPDAT\0";
-pub const DATASET_VERSION: u32 = 1;
+/// Version 2 added the picked vertex per exit (`DatasetHeader::vertices`);
+/// version 1 files (no vertices) are still read.
+pub const DATASET_VERSION: u32 = 2;
+/// The oldest version this build reads.
+pub const DATASET_VERSION_MIN: u32 = 1;
 const CHUNK_MAGIC: [u8; 4] = *b"CHNK";
 const END_MAGIC: [u8; 4] = *b"NEND";
 const CHUNK_HEADER_LEN: usize = 28;
@@ -64,6 +69,11 @@ pub struct DatasetHeader {
     /// always was. A shard is a valid data set of its own rays.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shard: Option<crate::shard::DatasetShard>,
+    /// Whether every exit comes with the vertex of its walk picked for
+    /// next-event estimation ([`PickedVertex`]): objects with a non-delta
+    /// surface (version 2 on). Absent (false) in version 1 files.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub vertices: bool,
 }
 
 impl DatasetHeader {
@@ -79,12 +89,15 @@ impl DatasetHeader {
     }
 }
 
-/// One input ray: its chord, whether it hits the mesh, and for a hit its k exits.
+/// One input ray: its chord, whether it hits the mesh, and for a hit its k
+/// exits (and, when the header says so, each walk's picked vertex).
 #[derive(Clone, Debug, PartialEq)]
 pub struct RayRecord {
     pub pair: SpherePair,
     pub hit: bool,
     pub exits: Vec<Exit>,
+    /// Parallel to `exits` when [`DatasetHeader::vertices`], else empty.
+    pub vertices: Vec<PickedVertex>,
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -116,7 +129,7 @@ pub enum DatasetError {
     Io { path: PathBuf, err: std::io::Error },
     #[error("{}: not an nppp training-data file (wrong magic; expected \"NPPPDAT\\0\")", path.display())]
     Magic { path: PathBuf },
-    #[error("{}: version {found} not supported (this build reads {DATASET_VERSION})", path.display())]
+    #[error("{}: version {found} not supported (this build reads {DATASET_VERSION_MIN} to {DATASET_VERSION}; `nppp gen` rebuilds the data)", path.display())]
     Version { path: PathBuf, found: u32 },
     #[error("{}: invalid header: {what}", path.display())]
     Header { path: PathBuf, what: String },
@@ -225,6 +238,22 @@ struct Columns {
     bounces: Vec<u8>,
     throughput: Vec<u8>,
     radiance: Vec<u8>,
+    /// Picked vertices, [`VERTEX_BYTES`] + bounce width each (empty in a
+    /// data set without vertices).
+    vertices: Vec<u8>,
+}
+
+/// A stored vertex before its bounce index: position 3 x f16 (signed),
+/// normal and direction octahedral 2 x u16 each, throughput 3 x f16.
+const VERTEX_BYTES: usize = 6 + 4 + 4 + 6;
+
+/// Signed f32 -> f16 bits (a vertex position); non-finite becomes 0 (the
+/// writer rejects those before this point).
+fn f32_to_f16_signed(x: f32) -> u16 {
+    if !x.is_finite() {
+        return 0;
+    }
+    half::f16::from_f32(x).to_bits()
 }
 
 impl Columns {
@@ -237,7 +266,7 @@ impl Columns {
         }
     }
 
-    fn columns_mut(&mut self) -> [&mut Vec<u8>; 8] {
+    fn columns_mut(&mut self) -> [&mut Vec<u8>; 9] {
         [
             &mut self.pairs,
             &mut self.hit_bits,
@@ -247,6 +276,7 @@ impl Columns {
             &mut self.bounces,
             &mut self.throughput,
             &mut self.radiance,
+            &mut self.vertices,
         ]
     }
 
@@ -259,6 +289,7 @@ impl Columns {
             + self.bounces.len()
             + self.throughput.len()
             + self.radiance.len()
+            + self.vertices.len()
     }
 
     fn push(&mut self, rec: &RayRecord, max_b: u32, bw: usize) {
@@ -295,12 +326,24 @@ impl Columns {
             let b = e.bounces.min(max_b);
             self.bounces.extend_from_slice(&b.to_le_bytes()[..bw]);
         }
+        for v in &rec.vertices {
+            for x in [v.position.x, v.position.y, v.position.z] {
+                self.vertices.extend_from_slice(&f32_to_f16_signed(x).to_le_bytes());
+            }
+            for q in oct_encode(v.normal).into_iter().chain(oct_encode(v.wo)) {
+                self.vertices.extend_from_slice(&q.to_le_bytes());
+            }
+            for x in [v.beta.x, v.beta.y, v.beta.z] {
+                self.vertices.extend_from_slice(&f32_to_f16(x).to_le_bytes());
+            }
+            self.vertices.extend_from_slice(&v.index.min(max_b).to_le_bytes()[..bw]);
+        }
     }
 
     fn payload(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.bytes());
         for c in
-            [&self.pairs, &self.hit_bits, &self.positions, &self.directions, &self.flags, &self.bounces, &self.throughput, &self.radiance]
+            [&self.pairs, &self.hit_bits, &self.positions, &self.directions, &self.flags, &self.bounces, &self.throughput, &self.radiance, &self.vertices]
         {
             out.extend_from_slice(c);
         }
@@ -311,7 +354,7 @@ impl Columns {
 /// Splits a payload back into records. Every column's size is checked
 /// against the payload before any record is allocated, so a damaged count
 /// cannot ask for more memory than the (bounded) payload justifies.
-fn decode_payload(p: &[u8], rays: u32, hits: u32, k: u32, bw: usize) -> Result<Vec<RayRecord>, String> {
+fn decode_payload(p: &[u8], rays: u32, hits: u32, k: u32, bw: usize, with_vertices: bool) -> Result<Vec<RayRecord>, String> {
     let rays = rays as usize;
     let n_exits = hits as usize * k as usize;
     let mut at = 0usize;
@@ -330,6 +373,7 @@ fn decode_payload(p: &[u8], rays: u32, hits: u32, k: u32, bw: usize) -> Result<V
     let n_l = flags.iter().filter(|f| *f & 2 != 0).count();
     let thr = take(6 * n_t)?;
     let rad = take(6 * n_l)?;
+    let verts = take(if with_vertices { (VERTEX_BYTES + bw) * n_exits } else { 0 })?;
     if at != p.len() {
         return Err(format!("{} unexpected bytes after the last column", p.len() - at));
     }
@@ -374,7 +418,25 @@ fn decode_payload(p: &[u8], rays: u32, hits: u32, k: u32, bw: usize) -> Result<V
                 e += 1;
             }
         }
-        out.push(RayRecord { pair, hit, exits });
+        let mut vertices = Vec::with_capacity(if hit && with_vertices { k as usize } else { 0 });
+        if hit && with_vertices {
+            let first = e - k as usize;
+            for x in first..e {
+                let s = &verts[(VERTEX_BYTES + bw) * x..(VERTEX_BYTES + bw) * (x + 1)];
+                let h = |i: usize| u16::from_le_bytes([s[2 * i], s[2 * i + 1]]);
+                let signed = |i: usize| half::f16::from_bits(h(i)).to_f32();
+                let mut b = [0u8; 4];
+                b[..bw].copy_from_slice(&s[VERTEX_BYTES..]);
+                vertices.push(PickedVertex {
+                    position: Vec3::new(signed(0), signed(1), signed(2)),
+                    normal: oct_decode([h(3), h(4)]),
+                    wo: oct_decode([h(5), h(6)]),
+                    beta: Vec3::new(f16_to_f32(h(7)), f16_to_f32(h(8)), f16_to_f32(h(9))),
+                    index: u32::from_le_bytes(b),
+                });
+            }
+        }
+        out.push(RayRecord { pair, hit, exits, vertices });
     }
     Ok(out)
 }
@@ -517,6 +579,28 @@ impl DatasetWriter {
         }
         if !rec.pair.0.iter().all(|x| x.is_finite()) {
             return Err(format!("sphere pair {:?} is not finite", rec.pair.0));
+        }
+        let want_vertices = if self.header.vertices { rec.exits.len() } else { 0 };
+        if rec.vertices.len() != want_vertices {
+            return Err(format!(
+                "{} picked vertices for {} exits (the header says the data set {} vertices)",
+                rec.vertices.len(),
+                rec.exits.len(),
+                if self.header.vertices { "has" } else { "has no" }
+            ));
+        }
+        for (i, v) in rec.vertices.iter().enumerate() {
+            if !(v.position.is_finite() && v.position.abs().max_element() <= 1.0) {
+                return Err(format!("vertex {i}: position {} is not inside the unit sphere's box", v.position));
+            }
+            for (name, d) in [("normal", v.normal), ("direction", v.wo)] {
+                if !(d.is_finite() && d.abs().max_element() > 0.0) {
+                    return Err(format!("vertex {i}: {name} {d} is not a finite non-zero vector"));
+                }
+            }
+            if !(v.beta.is_finite() && v.beta.min_element() >= 0.0) {
+                return Err(format!("vertex {i}: throughput {} is not finite and >= 0", v.beta));
+            }
         }
         for (i, e) in rec.exits.iter().enumerate() {
             for (name, v) in [("position", e.position), ("direction", e.direction)] {
@@ -675,7 +759,7 @@ impl DatasetReader {
             return Err(DatasetError::Index { path: p(), what: format!("truncated: file is {len} bytes, the fixed prefix alone is 16") });
         }
         let version = le_u32(&prefix, 8);
-        if version != DATASET_VERSION {
+        if !(DATASET_VERSION_MIN..=DATASET_VERSION).contains(&version) {
             return Err(DatasetError::Version { path: p(), found: version });
         }
         let hlen = le_u32(&prefix, 12) as usize;
@@ -702,6 +786,9 @@ impl DatasetReader {
         let b = hj.sphere_bits.map(f32::from_bits);
         header.sphere = BoundingSphere { center: Vec3::new(b[0], b[1], b[2]), radius: b[3] };
         check_header(&header).map_err(|what| DatasetError::Header { path: p(), what })?;
+        if header.vertices && version < 2 {
+            return Err(DatasetError::Header { path: p(), what: format!("\"vertices\" in a version {version} file (vertices came with version 2)") });
+        }
 
         // Trailer, then the index it points to.
         let incomplete = |what: String| DatasetError::Index { path: p(), what };
@@ -819,7 +906,8 @@ impl DatasetReader {
             }
             other => return Err(err(format!("unknown payload encoding {other}"))),
         };
-        decode_payload(&raw, c.rays, c.hits, self.header.k, bounce_width(self.header.max_internal_bounces)).map_err(err)
+        decode_payload(&raw, c.rays, c.hits, self.header.k, bounce_width(self.header.max_internal_bounces), self.header.vertices)
+            .map_err(err)
     }
 
     /// Chunk `i` as stored, its header and payload checked (marker, sizes,

@@ -25,6 +25,7 @@ fn header(k: u32) -> DatasetHeader {
         seed: 1234,
         max_internal_bounces: 64,
         shard: None,
+        vertices: false,
     }
 }
 
@@ -37,7 +38,7 @@ fn unit(rng: &mut SampleRng) -> Vec3 {
 pub(crate) fn synthetic_record(rng: &mut SampleRng, k: u32, hit_rate: f32) -> RayRecord {
     let pair = SpherePair([rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()]);
     if rng.uniform() >= hit_rate {
-        return RayRecord { pair, hit: false, exits: vec![] };
+        return RayRecord { pair, hit: false, exits: vec![], vertices: vec![] };
     }
     let exits = (0..k)
         .map(|_| {
@@ -57,7 +58,7 @@ pub(crate) fn synthetic_record(rng: &mut SampleRng, k: u32, hit_rate: f32) -> Ra
             Exit { position, direction, throughput, radiance, bounces: b }
         })
         .collect();
-    RayRecord { pair, hit: true, exits }
+    RayRecord { pair, hit: true, exits, vertices: vec![] }
 }
 
 fn tmp(name: &str) -> PathBuf {
@@ -244,7 +245,7 @@ fn empty_and_invalid_records() {
     assert!(w.write(&rec).unwrap_err().to_string().contains("exit 2: throughput"));
     rec.exits[2].throughput.y = -0.5;
     assert!(w.write(&rec).is_err());
-    let rec = RayRecord { pair: SpherePair([0.1; 4]), hit: false, exits: vec![Exit::default()] };
+    let rec = RayRecord { pair: SpherePair([0.1; 4]), hit: false, exits: vec![Exit::default()], vertices: vec![] };
     assert!(w.write(&rec).is_err());
     // Dropping an unfinished writer leaves the old file alone and no temp file.
     drop(w);
@@ -322,7 +323,7 @@ fn corruption_is_detected_everywhere() {
         let mut b = good.clone();
         b[8] = 9;
         std::fs::write(&path, &b).unwrap();
-        assert!(first_error(&path).unwrap().contains("version 9 not supported (this build reads 1)"));
+        assert!(first_error(&path).unwrap().contains("version 9 not supported (this build reads 1 to 2"));
         let mut b = good.clone();
         b[0] = b'X';
         std::fs::write(&path, &b).unwrap();
@@ -359,5 +360,84 @@ fn absurd_index_values_do_not_allocate() {
     b[first + 24..first + 28].copy_from_slice(&h.finalize().to_le_bytes());
     std::fs::write(&path, &b).unwrap();
     assert!(first_error(&path).unwrap().contains("uncompressed bytes (limit"));
+    let _ = std::fs::remove_dir_all(path.parent().unwrap());
+}
+
+/// A picked vertex per exit, shaped like a diffuse walk's.
+fn synthetic_vertex(rng: &mut SampleRng) -> PickedVertex {
+    PickedVertex {
+        position: unit(rng) * (0.2 + 0.6 * rng.uniform()),
+        normal: unit(rng),
+        wo: unit(rng),
+        beta: Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 3.0,
+        index: (rng.uniform() * 5.0) as u32,
+    }
+}
+
+#[test]
+fn picked_vertices_round_trip_and_are_checked() {
+    let path = tmp("vertices");
+    let mut h = header(8);
+    h.vertices = true;
+    let mut rng = SampleRng::from_seed(11);
+    let recs: Vec<RayRecord> = (0..100)
+        .map(|_| {
+            let mut r = synthetic_record(&mut rng, 8, 0.5);
+            r.vertices = r.exits.iter().map(|_| synthetic_vertex(&mut rng)).collect();
+            r
+        })
+        .collect();
+    let mut w = DatasetWriter::create_with(&path, h.clone(), WriterOptions { chunk_rays: 32, compress: true }).unwrap();
+    recs.iter().for_each(|r| w.write(r).unwrap());
+    // A hit without its vertices, or vertices in data that has none, is refused.
+    let mut bad = synthetic_record(&mut rng, 8, 1.0);
+    assert!(w.write(&bad).unwrap_err().to_string().contains("0 picked vertices for 8 exits"), "vertices missing");
+    bad.vertices = bad.exits.iter().map(|_| synthetic_vertex(&mut rng)).collect();
+    bad.vertices[3].normal = Vec3::ZERO;
+    assert!(w.write(&bad).unwrap_err().to_string().contains("vertex 3: normal"));
+    bad.vertices[3].normal = Vec3::Z;
+    bad.vertices[5].beta.y = -1.0;
+    assert!(w.write(&bad).unwrap_err().to_string().contains("vertex 5: throughput"));
+    w.finish().unwrap();
+    let got = DatasetReader::open(&path).unwrap().read_all().unwrap();
+    assert_eq!(got.len(), recs.len());
+    for (a, b) in recs.iter().zip(&got) {
+        assert_close(a, b);
+        assert_eq!(a.vertices.len(), b.vertices.len());
+        for (x, y) in a.vertices.iter().zip(&b.vertices) {
+            // Positions in f16: 2^-11 relative.
+            assert!((x.position - y.position).abs().max_element() <= 1e-3, "{x:?} {y:?}");
+            assert!(angle(x.normal, y.normal) <= OCT_MAX_ANGLE && angle(x.wo, y.wo) <= OCT_MAX_ANGLE);
+            assert!(color_close(x.beta, y.beta));
+            assert_eq!(x.index, y.index);
+        }
+    }
+    // Data without vertices refuses records that carry them.
+    let path2 = tmp("no-vertices");
+    let mut w = DatasetWriter::create(&path2, header(8)).unwrap();
+    assert!(w.write(&recs.iter().find(|r| r.hit).unwrap().clone()).unwrap_err().to_string().contains("has no vertices"));
+    let _ = std::fs::remove_dir_all(path.parent().unwrap());
+    let _ = std::fs::remove_dir_all(path2.parent().unwrap());
+}
+
+/// Rewrites a file's version field (and the header checksum that covers it).
+fn with_version(bytes: &[u8], version: u32) -> Vec<u8> {
+    let mut b = bytes.to_vec();
+    b[8..12].copy_from_slice(&version.to_le_bytes());
+    let hlen = u32::from_le_bytes([b[12], b[13], b[14], b[15]]) as usize;
+    let crc = crc32fast::hash(&b[8..16 + hlen]);
+    b[16 + hlen..20 + hlen].copy_from_slice(&crc.to_le_bytes());
+    b
+}
+
+#[test]
+fn version_1_files_are_read_and_others_named() {
+    let (path, bytes) = small_file(true);
+    let now = DatasetReader::from_bytes(bytes.clone(), &path).unwrap().read_all().unwrap();
+    // A version 1 file (no vertices) reads as it always did.
+    let v1 = with_version(&bytes, 1);
+    assert_eq!(DatasetReader::from_bytes(v1, &path).unwrap().read_all().unwrap(), now);
+    let e = first_error_mem(&with_version(&bytes, 3), &path).unwrap();
+    assert!(e.contains("version 3 not supported (this build reads 1 to 2; `nppp gen` rebuilds the data)"), "{e}");
     let _ = std::fs::remove_dir_all(path.parent().unwrap());
 }

@@ -161,6 +161,10 @@ pub struct TrainConfig {
     pub energy_weight: f32,
     #[config(default = 1.0)]
     pub mask_weight: f32,
+    /// Weight of the vertex head's term (its Chamfer plus `energy_weight`
+    /// times its energy distance) when the model has the head.
+    #[config(default = 1.0)]
+    pub vertex_weight: f32,
     /// Per-parameter gradient-norm clip (0 = off): a safety net against a
     /// rare batch of far outliers, not a regularizer.
     #[config(default = 10.0)]
@@ -218,6 +222,9 @@ impl TrainConfig {
         if !(self.energy_weight.is_finite() && self.energy_weight >= 0.0) {
             bail!("energy weight {} must be >= 0", self.energy_weight);
         }
+        if !(self.vertex_weight.is_finite() && self.vertex_weight >= 0.0) {
+            bail!("vertex weight {} must be >= 0", self.vertex_weight);
+        }
         if self.holdout_every < 2 {
             bail!("holdout_every must be at least 2");
         }
@@ -237,6 +244,9 @@ impl TrainConfig {
         let per_exit = w(m.decoder_width)
             .saturating_mul(w(m.decoder_layers) + 1)
             .saturating_add(w(EXIT_FEATURES + m.noise_dim + m.latent_dim));
+        // The vertex head doubles the per-exit terms.
+        let heads = if m.vertex_head { 2 } else { 1 };
+        let (k, per_exit) = (k.saturating_mul(heads), per_exit.saturating_mul(heads));
         let exits = bk
             .saturating_mul(k.saturating_mul(6))
             .saturating_add(bk.saturating_mul(per_exit))

@@ -80,6 +80,18 @@ fn train_on(
 ) -> Result<TrainReport> {
     let out = &opts.out;
     let mut cfg = cfg;
+    // The vertex head trains exactly when the data has picked vertices.
+    let has_vertices = data.vertex_transform.is_some();
+    if ckpt.is_none() {
+        cfg.model.vertex_head = has_vertices;
+    } else if cfg.model.vertex_head != has_vertices {
+        bail!(
+            "--resume: the checkpoint was trained {} a vertex head, and {} {} picked vertices",
+            if cfg.model.vertex_head { "with" } else { "without" },
+            opts.data.display(),
+            if has_vertices { "has" } else { "has no" }
+        );
+    }
     // The exits per ray a step uses can only be as many as the file holds;
     // the saved config says what actually runs.
     if cfg.k > data.k {
@@ -146,7 +158,8 @@ fn train_on(
         let optim = load_optimizer(&ckpt, make_optimizer(&cfg))?;
         (model, optim, state, ckpt.meta, ckpt.log)
     } else {
-        let meta = ModelMeta::new(info.clone(), data.transform.clone(), opts.data.clone());
+        let mut meta = ModelMeta::new(info.clone(), data.transform.clone(), opts.data.clone());
+        meta.vertex_transform = data.vertex_transform.clone();
         let model = NpppModel::init(&cfg.model, cfg.seed, &ad)?;
         let state = TrainState {
             version: STATE_VERSION,

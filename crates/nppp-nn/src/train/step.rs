@@ -5,7 +5,7 @@
 
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor, TensorData};
-use nppp_estimator::EXIT_FEATURES;
+use nppp_estimator::{EXIT_FEATURES, VERTEX_FEATURES};
 use nppp_geom::SampleRng;
 
 use super::TrainConfig;
@@ -21,6 +21,7 @@ const STREAM_PERM: u64 = 0x9E41;
 const STREAM_BATCH: u64 = 0xBA7C;
 const STREAM_NOISE: u64 = 0x7015;
 const STREAM_MASK: u64 = 0x3A5C;
+const STREAM_VERTEX_NOISE: u64 = 0x7E27;
 
 /// One step's input, assembled on the CPU.
 pub(super) struct Batch {
@@ -29,6 +30,10 @@ pub(super) struct Batch {
     noise: Vec<f32>,
     mask_features: Vec<f32>,
     mask_labels: Vec<f32>,
+    /// The picked vertices of the same walks as `real`, and the vertex
+    /// head's noise (both empty without the head).
+    real_vertices: Vec<f32>,
+    vertex_noise: Vec<f32>,
     b: usize,
     k: usize,
     bm: usize,
@@ -62,14 +67,22 @@ pub(super) fn make_batch(
     let mut rng = SampleRng::new(cfg.seed, step, STREAM_BATCH);
     let mut features = Vec::with_capacity(b * INPUT_FEATURES);
     let mut real = Vec::with_capacity(b * k * EXIT_FEATURES);
+    let with_vertices = cfg.model.vertex_head;
+    let mut real_vertices = Vec::with_capacity(if with_vertices { b * k * VERTEX_FEATURES } else { 0 });
     let mut idx: Vec<u32> = (0..kf as u32).collect();
     for j in 0..b {
         let h = perm[(in_epoch * b + j) % n_hit] as usize;
         let ray = tr.hit_index[h];
         features.extend_from_slice(&tr.features[ray * INPUT_FEATURES..(ray + 1) * INPUT_FEATURES]);
         let exits = &tr.exits[h * kf * EXIT_FEATURES..(h + 1) * kf * EXIT_FEATURES];
+        let vertices: &[f32] = if with_vertices {
+            &tr.vertices[h * kf * VERTEX_FEATURES..(h + 1) * kf * VERTEX_FEATURES]
+        } else {
+            &[]
+        };
         if k == kf {
             real.extend_from_slice(exits);
+            real_vertices.extend_from_slice(vertices);
         } else {
             // Partial Fisher-Yates: k distinct exits of the file's kf.
             for i in 0..k {
@@ -77,11 +90,22 @@ pub(super) fn make_batch(
                 idx.swap(i, r);
                 let e = idx[i] as usize;
                 real.extend_from_slice(&exits[e * EXIT_FEATURES..(e + 1) * EXIT_FEATURES]);
+                if with_vertices {
+                    real_vertices.extend_from_slice(
+                        &vertices[e * VERTEX_FEATURES..(e + 1) * VERTEX_FEATURES],
+                    );
+                }
             }
         }
     }
     let mut nrng = SampleRng::new(cfg.seed, step, STREAM_NOISE);
     let noise: Vec<f32> = (0..b * k * nd).map(|_| nrng.normal()).collect();
+    let vertex_noise: Vec<f32> = if with_vertices {
+        let mut vrng = SampleRng::new(cfg.seed, step, STREAM_VERTEX_NOISE);
+        (0..b * k * nd).map(|_| vrng.normal()).collect()
+    } else {
+        Vec::new()
+    };
     let mut mrng = SampleRng::new(cfg.seed, step, STREAM_MASK);
     let bm = cfg.mask_batch;
     let mut mask_features = Vec::with_capacity(bm * INPUT_FEATURES);
@@ -97,6 +121,8 @@ pub(super) fn make_batch(
         noise,
         mask_features,
         mask_labels,
+        real_vertices,
+        vertex_noise,
         b,
         k,
         bm,
@@ -120,6 +146,8 @@ pub(super) fn train_step(
         noise,
         mask_features,
         mask_labels,
+        real_vertices,
+        vertex_noise,
         b,
         k,
         bm,
@@ -128,7 +156,8 @@ pub(super) fn train_step(
     let feats = Tensor::<2>::from_data(TensorData::new(features, [b, INPUT_FEATURES]), device);
     let real = Tensor::<3>::from_data(TensorData::new(real, [b, k, EXIT_FEATURES]), device);
     let noise = Tensor::<2>::from_data(TensorData::new(noise, [b * k, nd]), device);
-    let generated = model.generate(feats, noise, k);
+    let z = model.encode(feats);
+    let generated = model.generate_from_latent(z.clone(), noise, k);
     let d = pairwise_sq_dists(generated.clone(), real.clone());
     let chamfer = chamfer_from_dists(d.clone());
     let energy = if cfg.energy_weight > 0.0 {
@@ -136,12 +165,32 @@ pub(super) fn train_step(
     } else {
         Tensor::<1>::zeros([1], device)
     };
+    // The vertex head's term: the same distances on the picked vertices,
+    // in the total loss only (log.csv's columns stay the exits').
+    let vertex_noise = (!vertex_noise.is_empty())
+        .then(|| Tensor::<2>::from_data(TensorData::new(vertex_noise, [b * k, nd]), device));
+    let vertex_term = match vertex_noise.and_then(|vn| model.generate_vertices_from_latent(z, vn, k)) {
+        Some(gv) => {
+            let rv = Tensor::<3>::from_data(
+                TensorData::new(real_vertices, [b, k, VERTEX_FEATURES]),
+                device,
+            );
+            let dv = pairwise_sq_dists(gv.clone(), rv);
+            let mut t = chamfer_from_dists(dv.clone());
+            if cfg.energy_weight > 0.0 {
+                t = t + energy_distance_trainable(dv, gv).mul_scalar(cfg.energy_weight);
+            }
+            t.mul_scalar(cfg.vertex_weight)
+        }
+        None => Tensor::<1>::zeros([1], device),
+    };
     let mf = Tensor::<2>::from_data(TensorData::new(mask_features, [bm, INPUT_FEATURES]), device);
     let ml = Tensor::<1>::from_data(TensorData::new(mask_labels, [bm]), device);
     let bce = bce_with_logits(model.mask_logits(mf), ml);
     let loss = chamfer.clone()
         + energy.clone().mul_scalar(cfg.energy_weight)
-        + bce.clone().mul_scalar(cfg.mask_weight);
+        + bce.clone().mul_scalar(cfg.mask_weight)
+        + vertex_term;
     // One read-back per step: the values for the log and the finiteness check.
     let values = Tensor::cat(
         vec![

@@ -422,6 +422,9 @@ pub fn label(c: Option<Choice>) -> String {
             EntryNee::Off => format!("P = {}", c.min_bounces),
             EntryNee::FirstVertex => format!("P = {} + first-vertex NEE", c.min_bounces),
             EntryNee::PickedVertex => format!("P = {} + picked-vertex NEE", c.min_bounces),
+            EntryNee::PickedVertexLightOnly => {
+                format!("P = {} + picked-vertex NEE (light sample alone)", c.min_bounces)
+            }
         },
     }
 }
