@@ -1050,7 +1050,9 @@ const ESTIMATORS: &[(&str, &[&str])] = &[
     ),
     (
         "est_version_3.nppp",
-        &["version 3 not supported (this build reads 1 to 2; `make bake` or `nppp bake` rebuilds it)"],
+        &[
+            "version 3 not supported (this build reads 1 to 2; `make bake` or `nppp bake` rebuilds it)",
+        ],
     ),
     (
         "est_corrupted.nppp",

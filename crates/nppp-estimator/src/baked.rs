@@ -800,10 +800,7 @@ pub(crate) mod tests {
         assert!(err_of(&b).contains("wrong magic"));
         let mut b = good.clone();
         b[8..12].copy_from_slice(&7u32.to_le_bytes());
-        assert_eq!(
-            err_of(&b),
-            "models/x.nppp: version 7 not supported (this build reads 1 to 2; `make bake` or `nppp bake` rebuilds it)"
-        );
+        assert_eq!(err_of(&b), "models/x.nppp: version 7 not supported (this build reads 1 to 2; `make bake` or `nppp bake` rebuilds it)");
         let mut b = good.clone();
         b.push(0);
         recrc(&mut b);

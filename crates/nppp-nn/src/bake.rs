@@ -12,14 +12,17 @@ use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
 use nppp_estimator::grid::{checked_node_count, node_coords};
 use nppp_estimator::{
-    BakedEstimator, VertexHead, DecodeRepairs, EstimatorMeta, EstimatorSampler, Exit, ExitBatch,
+    BakedEstimator, DecodeRepairs, EstimatorMeta, EstimatorSampler, Exit, ExitBatch, PickedVertex,
+    VertexHead,
 };
 use nppp_geom::SpherePair;
 use serde::{Deserialize, Serialize};
 
 use crate::backend::BackendKind;
 use crate::data::{DataSplit, is_heldout};
-use crate::eval::{BurnEstimator, EvalOptions, ExitSource, HeldoutMetrics, eval_rng, evaluate};
+use crate::eval::{
+    BurnEstimator, EvalOptions, ExitSource, HeldoutMetrics, eval_rng, eval_vertex_rng, evaluate,
+};
 use crate::io::load_dataset_where;
 use crate::model_dir::{LoadedModel, load_model_dir};
 
@@ -140,7 +143,36 @@ impl std::fmt::Display for BakeReport {
                     "throughput bias",
                     format!("{:+.2}%", 100.0 * u.throughput_bias),
                     format!("{:+.2}%", 100.0 * b.throughput_bias)
-                )
+                )?;
+                if let (Some(uv), Some(bv)) = (&u.vertex, &b.vertex) {
+                    writeln!(f)?;
+                    row(
+                        f,
+                        "vertex chamfer",
+                        format!("{:.4}", uv.chamfer),
+                        format!("{:.4}", bv.chamfer),
+                    )?;
+                    row(
+                        f,
+                        "vertex throughput error",
+                        format!("{:.2}%", 100.0 * uv.throughput_error),
+                        format!("{:.2}%", 100.0 * bv.throughput_error),
+                    )?;
+                    row(
+                        f,
+                        "vertex throughput bias",
+                        format!("{:+.2}%", 100.0 * uv.throughput_bias),
+                        format!("{:+.2}%", 100.0 * bv.throughput_bias),
+                    )?;
+                    write!(
+                        f,
+                        "    {:<30} {:>9} {:>9}",
+                        "vertex off the nearest real",
+                        format!("{:.4}", uv.position_error),
+                        format!("{:.4}", bv.position_error)
+                    )?;
+                }
+                Ok(())
             }
             _ => write!(f, "  held-out    not scored (--no-eval)"),
         }
@@ -271,6 +303,45 @@ impl ExitSource for BakedSource {
             out.extend_from_slice(decoded.exits);
         }
         Ok(out)
+    }
+
+    fn sample_vertices(
+        &mut self,
+        pairs: &[SpherePair],
+        first_index: u64,
+        k: usize,
+        seed: u64,
+    ) -> Result<Option<Vec<PickedVertex>>> {
+        // As `sample_exits`, then the vertex head on the same rows with the
+        // vertex noise stream (the Burn side draws the same r').
+        let sampler = &self.sampler;
+        if !sampler.has_vertex_head() {
+            return Ok(None);
+        }
+        let mut out = Vec::with_capacity(pairs.len() * k);
+        let per_batch = (16384 / k.max(1)).max(1);
+        for (c, chunk) in pairs.chunks(per_batch).enumerate() {
+            let first = first_index + (c * per_batch) as u64;
+            let fill = |row: usize, z: &mut [f32], noise: &mut [f32]| {
+                sampler.latent(&chunk[row / k], z);
+                noise.iter_mut().for_each(|x| *x = 0.0);
+            };
+            let rows = chunk.len() * k;
+            sampler.sample_batch(&mut self.batch, rows, fill, &mut self.repairs);
+            let mut rng = eval_vertex_rng(seed, first);
+            let noise = |row: usize, r: &mut [f32]| {
+                let (i, j) = (row / k, row % k);
+                if j == 0 {
+                    rng = eval_vertex_rng(seed, first + i as u64);
+                }
+                r.iter_mut().for_each(|x| *x = rng.normal());
+            };
+            let verts = sampler
+                .sample_vertices(&mut self.batch, noise, &mut self.repairs)
+                .context("the estimator has no vertex head")?;
+            out.extend_from_slice(verts);
+        }
+        Ok(Some(out))
     }
 }
 
@@ -424,7 +495,13 @@ pub fn load_heldout(loaded: &LoadedModel, data: Option<&Path>, quiet: bool) -> R
             loaded.meta.dataset.material_name
         );
     }
-    crate::data::encode_split(rays, header.k as usize, &loaded.meta.transform, None, true)
+    // The picked vertices are scored when both the model and the data have them.
+    let vt = loaded
+        .meta
+        .vertex_transform
+        .as_ref()
+        .filter(|_| header.vertices);
+    crate::data::encode_split(rays, header.k as usize, &loaded.meta.transform, vt, true)
 }
 
 fn eval_pair(
@@ -439,17 +516,19 @@ fn eval_pair(
         ..EvalOptions::default()
     };
     let tr = &loaded.meta.transform;
+    let vt = loaded.meta.vertex_transform.as_ref();
     let mut unbaked = BurnEstimator::new(
         &loaded.model,
         tr.clone(),
         &loaded.meta.dataset,
         loaded.model_config.noise_dim,
     )?;
-    let mu = evaluate(&mut unbaked, heldout, k, tr, &opts)?;
+    unbaked.vertex_transform = vt.cloned();
+    let mu = evaluate(&mut unbaked, heldout, k, tr, vt, &opts)?;
     let mut sampler = EstimatorSampler::try_new(baked)?;
     sampler.throughput_bound = loaded.meta.dataset.exit_throughput_bound();
     let mut bs = BakedSource::new(sampler);
-    let mb = evaluate(&mut bs, heldout, k, tr, &opts)?;
+    let mb = evaluate(&mut bs, heldout, k, tr, vt, &opts)?;
     Ok((mu, mb))
 }
 

@@ -77,7 +77,11 @@ fn check_ray(i: usize, r: &RaySample, k: usize) -> Result<()> {
         );
     }
     if !r.vertices.is_empty() && r.vertices.len() != r.exits.len() {
-        bail!("ray {i}: {} picked vertices for {} exits", r.vertices.len(), r.exits.len());
+        bail!(
+            "ray {i}: {} picked vertices for {} exits",
+            r.vertices.len(),
+            r.exits.len()
+        );
     }
     if r.hit {
         if r.exits.len() != k {
@@ -162,7 +166,8 @@ impl TrainingData {
         );
         // Vertices are learned when every hit carries them (a data set
         // without them, version 1 or a glass object, trains the exits alone).
-        let has_vertices = rays.iter().any(|r| r.hit) && rays.iter().all(|r| !r.hit || !r.vertices.is_empty());
+        let has_vertices =
+            rays.iter().any(|r| r.hit) && rays.iter().all(|r| !r.hit || !r.vertices.is_empty());
         let vertex_transform = has_vertices.then(|| {
             VertexTransform::fit(
                 rays.iter()

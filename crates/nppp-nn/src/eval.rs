@@ -9,7 +9,10 @@
 use anyhow::{Context, Result, bail};
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
-use nppp_estimator::{DecodeRepairs, EXIT_FEATURES, Exit, ExitTransform};
+use nppp_estimator::{
+    DecodeRepairs, EXIT_FEATURES, Exit, ExitTransform, PickedVertex, VERTEX_FEATURES,
+    VertexTransform,
+};
 use nppp_geom::{SampleRng, SpherePair, luminance};
 use serde::{Deserialize, Serialize};
 
@@ -32,6 +35,23 @@ pub trait ExitSource {
         k: usize,
         seed: u64,
     ) -> Result<Vec<Exit>>;
+    /// `k` picked vertices for each ray from the vertex head, like
+    /// [`Self::sample_exits`] (with their own noise stream,
+    /// [`eval_vertex_rng`]); `None` without a vertex head.
+    fn sample_vertices(
+        &mut self,
+        _pairs: &[SpherePair],
+        _first_index: u64,
+        _k: usize,
+        _seed: u64,
+    ) -> Result<Option<Vec<PickedVertex>>> {
+        Ok(None)
+    }
+}
+
+/// The random stream of the vertex head's noise for evaluation ray `index`.
+pub fn eval_vertex_rng(seed: u64, index: u64) -> SampleRng {
+    SampleRng::new(seed, index, 0xE7A2)
 }
 
 /// The random stream of the noise vectors of evaluation ray `index`.
@@ -50,6 +70,8 @@ pub struct BurnEstimator {
     /// A device without autodiff.
     pub device: Device,
     pub transform: ExitTransform,
+    /// The vertex head's transform (with a vertex head).
+    pub vertex_transform: Option<VertexTransform>,
     pub max_bounces: u32,
     /// See `nppp_estimator::exit_throughput_bound`.
     pub throughput_bound: f32,
@@ -78,6 +100,7 @@ impl BurnEstimator {
             model,
             device,
             transform,
+            vertex_transform: None,
             max_bounces: dataset.max_internal_bounces,
             throughput_bound: dataset.exit_throughput_bound(),
             noise_dim,
@@ -149,6 +172,42 @@ impl ExitSource for BurnEstimator {
         }
         Ok(out)
     }
+
+    fn sample_vertices(
+        &mut self,
+        pairs: &[SpherePair],
+        first_index: u64,
+        k: usize,
+        seed: u64,
+    ) -> Result<Option<Vec<PickedVertex>>> {
+        let (Some(vt), true) = (&self.vertex_transform, self.model.vertex_decoder.is_some()) else {
+            return Ok(None);
+        };
+        let nd = self.noise_dim;
+        let per_call = (ROWS_PER_CALL / k.max(1)).max(1);
+        let mut out = Vec::with_capacity(pairs.len() * k);
+        for (ci, chunk) in pairs.chunks(per_call).enumerate() {
+            let mut noise = Vec::with_capacity(chunk.len() * k * nd);
+            for j in 0..chunk.len() {
+                let mut rng = eval_vertex_rng(seed, first_index + (ci * per_call + j) as u64);
+                noise.extend((0..k * nd).map(|_| rng.normal()));
+            }
+            let noise =
+                Tensor::from_data(TensorData::new(noise, [chunk.len() * k, nd]), &self.device);
+            let z = self.model.encode(self.features(chunk));
+            let y = self
+                .model
+                .generate_vertices_from_latent(z, noise, k)
+                .context("the model has no vertex head")?;
+            for f in to_vec(y)?.chunks_exact(VERTEX_FEATURES) {
+                let f: &[f32; VERTEX_FEATURES] = f.try_into().expect("chunk of VERTEX_FEATURES");
+                let (v, repaired) = vt.decode(f, self.max_bounces);
+                self.repairs.vertices += u32::from(repaired);
+                out.push(v);
+            }
+        }
+        Ok(Some(out))
+    }
 }
 
 /// How much of the held-out part to score.
@@ -211,6 +270,28 @@ pub struct HeldoutMetrics {
     pub radiance_bias: f64,
     /// Mean real throughput luminance over the scored rays (the denominator).
     pub mean_throughput: f64,
+    /// The vertex head's scores (a model and data with picked vertices).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vertex: Option<VertexMetrics>,
+}
+
+/// Held-out accuracy of the vertex head. Its throughput is the weight of
+/// the one light sample that stands for every skipped vertex, so its mean
+/// per ray is what next-event estimation through the estimator gets right
+/// or wrong on average.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct VertexMetrics {
+    /// Symmetric Chamfer distance per ray (encoded space).
+    pub chamfer: f64,
+    /// Mean over rays of |mean predicted - mean real| picked-vertex
+    /// throughput (luminance), over the mean real one.
+    pub throughput_error: f64,
+    /// The same, signed: positive = the light samples are too bright.
+    pub throughput_bias: f64,
+    /// Mean over pairs of (generated, real) vertices of the distance from a
+    /// generated position to the nearest real one, in sphere radii: how far
+    /// off the surface a light sample starts.
+    pub position_error: f64,
 }
 
 /// Scores `source` on `split` (which must carry raw exits, as the held-out
@@ -220,6 +301,7 @@ pub fn evaluate(
     split: &DataSplit,
     k: usize,
     transform: &ExitTransform,
+    vertex_transform: Option<&VertexTransform>,
     opts: &EvalOptions,
 ) -> Result<HeldoutMetrics> {
     if split.is_empty() {
@@ -313,7 +395,70 @@ pub fn evaluate(
     let rd_denom = if rd_real > 1e-9 { rd_real } else { nf };
     m.radiance_error = rd_abs / rd_denom;
     m.radiance_bias = rd_signed / rd_denom;
+    if let Some(vt) =
+        vertex_transform.filter(|_| split.vertices.len() == split.hits() * k * VERTEX_FEATURES)
+    {
+        if let Some(generated) = source.sample_vertices(&pairs, 0, k_gen, opts.seed)? {
+            m.vertex = Some(vertex_metrics(&generated, split, n, k, k_gen, kd, vt)?);
+        }
+    }
     Ok(m)
+}
+
+fn vertex_metrics(
+    generated: &[PickedVertex],
+    split: &DataSplit,
+    n: usize,
+    k: usize,
+    k_gen: usize,
+    kd: usize,
+    vt: &VertexTransform,
+) -> Result<VertexMetrics> {
+    if generated.len() != n * k_gen {
+        bail!(
+            "the vertex head returned {} vertices for {n} rays x {k_gen}",
+            generated.len()
+        );
+    }
+    let mut v = VertexMetrics::default();
+    let (mut abs, mut signed, mut real_sum) = (0.0, 0.0, 0.0);
+    for i in 0..n {
+        let real_f = &split.vertices[i * k * VERTEX_FEATURES..(i + 1) * k * VERTEX_FEATURES];
+        let real: Vec<PickedVertex> = real_f
+            .chunks_exact(VERTEX_FEATURES)
+            .map(|f| {
+                vt.decode(f.try_into().expect("chunk of VERTEX_FEATURES"), u32::MAX)
+                    .0
+            })
+            .collect();
+        let gen_ = &generated[i * k_gen..(i + 1) * k_gen];
+        let gen_f: Vec<f32> = gen_[..kd].iter().flat_map(|x| vt.encode(x)).collect();
+        v.chamfer += reference::chamfer(&gen_f, &real_f[..kd * VERTEX_FEATURES], VERTEX_FEATURES);
+        let mean = |vs: &[PickedVertex]| -> f64 {
+            vs.iter().map(|x| luminance(x.beta) as f64).sum::<f64>() / vs.len().max(1) as f64
+        };
+        let (r, g) = (mean(&real), mean(gen_));
+        abs += (g - r).abs();
+        signed += g - r;
+        real_sum += r;
+        let lit: Vec<&PickedVertex> = real.iter().filter(|x| x.beta.max_element() > 0.0).collect();
+        v.position_error += gen_[..kd]
+            .iter()
+            .map(|g| {
+                lit.iter()
+                    .map(|r| r.position.distance(g.position))
+                    .fold(f32::INFINITY, f32::min)
+            })
+            .map(|d| if d.is_finite() { d as f64 } else { 0.0 })
+            .sum::<f64>()
+            / kd as f64;
+    }
+    let nf = n as f64;
+    v.chamfer /= nf;
+    v.position_error /= nf;
+    v.throughput_error = abs / real_sum.max(1e-12);
+    v.throughput_bias = signed / real_sum.max(1e-12);
+    Ok(v)
 }
 
 /// Mean BCE of logits against labels, stable for any logit.

@@ -4,7 +4,7 @@
 //! absorbs a position-dependent fraction of paths (a real distribution whose
 //! mean throughput varies per ray, the case where Chamfer alone is biased).
 
-use nppp_estimator::Exit;
+use nppp_estimator::{Exit, PickedVertex};
 use nppp_geom::sampling::cosine_hemisphere;
 use nppp_geom::{Frame, Ray, SampleRng, SpherePair, Vec3};
 
@@ -20,6 +20,20 @@ pub enum SyntheticObject {
     /// from 20% at its bottom to 70% at its top; absorbed paths are exits
     /// with zero throughput, as the data generator writes them.
     AbsorbingDiffuse { radius: f32 },
+}
+
+/// The picked vertex the data generator records for a ray that hits a
+/// centred convex ball of `radius`: every walk's only lit vertex is the first
+/// hit (throughput 1 before scattering, index 0). For tests of the vertex head.
+pub fn first_hit_vertex(pair: &SpherePair, radius: f32) -> Option<PickedVertex> {
+    let (ray, h) = hit_ball(pair, radius)?;
+    Some(PickedVertex {
+        position: h,
+        normal: h / radius,
+        wo: -ray.dir,
+        beta: Vec3::ONE,
+        index: 0,
+    })
 }
 
 /// Where a ray leaving `p` along unit `d` (from inside) crosses the unit sphere.

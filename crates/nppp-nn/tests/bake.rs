@@ -122,3 +122,86 @@ fn bake_errors_are_clear() {
     let err = bake(&o).unwrap_err();
     assert!(err.to_string().contains("GiB"), "{err}");
 }
+
+/// The vertex head (issue 18): it trains when the data has picked vertices,
+/// is scored on the held-out rays, learns (on a convex ball the picked
+/// vertex is the first hit, a function of the ray), and is baked into the
+/// file with scores close to the model's.
+#[test]
+fn the_vertex_head_learns_the_first_hit_and_is_baked() {
+    use nppp_nn::synthetic::first_hit_vertex;
+    let dir = tmp("vertex-head");
+    let (radius, k) = (0.6, 8);
+    let data = dir.join("ball.nppd");
+    let mut header = synthetic_header("ball", k);
+    header.vertices = true;
+    let mut w = DatasetWriter::create(&data, header).unwrap();
+    for mut r in (SyntheticObject::AbsorbingDiffuse { radius }).rays(1500, k, 3) {
+        if r.hit {
+            r.vertices = vec![first_hit_vertex(&r.pair, radius).unwrap(); k];
+        }
+        w.write(&r).unwrap();
+    }
+    w.finish().unwrap();
+    let train_for = |epochs: usize, name: &str| -> (PathBuf, nppp_nn::eval::VertexMetrics) {
+        let model = dir.join(name);
+        let mut o = TrainOptions::new(&data, &model);
+        o.backend = BackendKind::Ndarray;
+        o.quiet = true;
+        o.batch = Some(16);
+        o.k = Some(8);
+        o.encoder_width = Some(64);
+        o.decoder_width = Some(32);
+        o.eval_rays = Some(64);
+        o.steps_per_epoch = Some(25);
+        o.epochs = Some(epochs);
+        o.minutes = 0.0;
+        let rep = train(&o).unwrap();
+        (
+            model,
+            rep.metrics
+                .unwrap()
+                .vertex
+                .expect("the vertex head is scored"),
+        )
+    };
+    let (_, first) = train_for(1, "m1");
+    let (model, last) = train_for(12, "m12");
+    assert!(
+        last.chamfer < first.chamfer / 3.0,
+        "vertex chamfer {first:?} -> {last:?}"
+    );
+    assert!(
+        last.position_error < first.position_error,
+        "{first:?} -> {last:?}"
+    );
+    let config = fs::read_to_string(model.join("checkpoint/train_config.json")).unwrap();
+    assert!(config.contains("\"vertex_head\": true"), "{config}");
+    let out = dir.join("ball.nppp");
+    let mut o = BakeOptions::new(&model, &out);
+    o.backend = BackendKind::Ndarray;
+    o.latent_grid = 8;
+    o.mask_grid = 4;
+    o.quiet = true;
+    o.eval_rays = 64;
+    let rep = bake(&o).unwrap();
+    let (u, b) = (
+        rep.unbaked.unwrap().vertex.unwrap(),
+        rep.baked.unwrap().vertex.unwrap(),
+    );
+    assert!(
+        b.chamfer < 1.5 * u.chamfer + 0.2,
+        "baked vertex head {b:?}, unbaked {u:?}"
+    );
+    let est = BakedEstimator::load(&out).unwrap();
+    let head = est.vertex.expect("the file has the vertex head");
+    assert_eq!(
+        head.decoder,
+        load_model_dir(&model, &BackendKind::Ndarray.device().unwrap())
+            .unwrap()
+            .model
+            .export_vertex_decoder()
+            .unwrap()
+            .unwrap()
+    );
+}

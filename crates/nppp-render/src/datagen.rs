@@ -16,9 +16,9 @@
 //! without it.
 
 use crate::accel::Blas;
-use crate::medium::Medium;
 use crate::bsdf::Bsdf;
 use crate::estimator::pick_skipped;
+use crate::medium::Medium;
 use crate::object_walk::{ObjectTracer, Walk, WalkVertex};
 use crate::surface::SurfaceKind;
 use glam::Vec3;

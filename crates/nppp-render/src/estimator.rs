@@ -136,7 +136,10 @@ pub enum EntryNee {
 impl EntryNee {
     /// Whether the estimator returns a picked vertex of the skipped path.
     pub fn is_picked(self) -> bool {
-        matches!(self, EntryNee::PickedVertex | EntryNee::PickedVertexLightOnly)
+        matches!(
+            self,
+            EntryNee::PickedVertex | EntryNee::PickedVertexLightOnly
+        )
     }
 }
 
@@ -175,7 +178,11 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
     };
     let total: f32 = verts.iter().map(weight).sum();
     if bsdf.is_delta() || !total.is_finite() || total <= 0.0 {
-        return SkippedVertices { nee: None, last, light_alone: false };
+        return SkippedVertices {
+            nee: None,
+            last,
+            light_alone: false,
+        };
     }
     let mut target = u * total;
     let mut chosen = None;
@@ -194,7 +201,11 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
         v.beta *= total / w;
         (v, bsdf)
     });
-    SkippedVertices { nee, last, light_alone: false }
+    SkippedVertices {
+        nee,
+        last,
+        light_alone: false,
+    }
 }
 
 /// The picked vertex a network's vertex head returned (unit sphere frame)
@@ -221,7 +232,11 @@ pub fn network_skipped(
         };
         (vertex, bsdf)
     });
-    SkippedVertices { nee, last: None, light_alone: true }
+    SkippedVertices {
+        nee,
+        last: None,
+        light_alone: true,
+    }
 }
 
 /// First-vertex NEE for one entry: the light sample at `first` (if it fits

@@ -548,6 +548,10 @@ pub fn sample_ld_weighted(
     if scene.plain().occluded(origin, ls.wi, tmax) {
         return Vec3::ZERO;
     }
-    let w = if mis { power_heuristic(ls.pdf, bsdf_pdf) } else { 1.0 };
+    let w = if mis {
+        power_heuristic(ls.pdf, bsdf_pdf)
+    } else {
+        1.0
+    };
     f * ls.radiance * (w / ls.pdf)
 }

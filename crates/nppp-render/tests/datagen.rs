@@ -10,8 +10,8 @@ use nppp_estimator::dataset::OCT_MAX_ANGLE;
 use nppp_estimator::{DatasetReader, RayRecord, WriterOptions};
 use nppp_geom::{BoundingSphere, Ray, SpherePair};
 use nppp_render::datagen::{
-    GenConfig, GenError, GenObject, GenStats, SPHERE_MARGIN, generate, input_ray, material_json,
-    trace_rays,
+    GenConfig, GenError, GenObject, GenStats, SPHERE_MARGIN, exit_rng, generate, input_ray,
+    material_json, trace_rays,
 };
 use nppp_scene::procedural::Procedural;
 use nppp_scene::{Material, Mesh, icosphere_mesh};
@@ -701,4 +701,64 @@ fn bad_input_is_an_error_not_a_panic() {
         assert!(input_ray(0, i).0.to_ray().is_some());
     }
     let _ = std::fs::remove_dir_all(dir);
+}
+
+/// Next-event estimation through the estimator (issue 18): each exit of an
+/// object with a non-delta surface comes with its walk's picked vertex. On
+/// a convex diffuse object a walk has one vertex, the first hit, so the
+/// picked vertex is known exactly: the first hit's point and facet normal,
+/// the direction back along the ray, throughput 1 (before scattering; the
+/// pick's probability is 1) and index 0. A glass object's data has none.
+#[test]
+fn picked_vertex_of_a_convex_diffuse_object_is_its_first_hit() {
+    let mesh = icosphere_mesh(Vec3::new(0.3, -0.2, 0.1), 2.0, 3);
+    let obj = object(
+        &mesh,
+        Material::Diffuse {
+            albedo: Vec3::new(0.7, 0.5, 0.3),
+        },
+    );
+    let c = cfg(400, 8, 9, 64);
+    assert!(obj.header(&c).vertices);
+    let recs = records(&obj, &c);
+    let mut checked = 0;
+    for (i, rec) in recs.iter().enumerate() {
+        assert_eq!(rec.vertices.len(), rec.exits.len(), "ray {i}");
+        let ray = rec.pair.to_ray().unwrap();
+        let Some(h) = first_hit(&obj, &mesh, &ray) else {
+            continue;
+        };
+        for v in &rec.vertices {
+            let pos_err = v.position.as_dvec3().distance(h.point);
+            assert!(
+                pos_err < 1e-4,
+                "ray {i}: vertex off the first hit by {pos_err}"
+            );
+            assert!(
+                v.normal.as_dvec3().dot(h.normal) > 0.9999,
+                "ray {i}: normal {}",
+                v.normal
+            );
+            assert!(v.wo.as_dvec3().dot(-h.dir) > 0.9999, "ray {i}: wo {}", v.wo);
+            assert_eq!((v.beta, v.index), (Vec3::ONE, 0), "ray {i}");
+            checked += 1;
+        }
+    }
+    assert!(checked > 500, "{checked} vertices");
+    // The exits are those of a walk that records nothing (the pick draws
+    // after the walk, from the same stream).
+    let tracer = obj.tracer(c.max_internal_bounces);
+    for (i, rec) in recs.iter().enumerate().filter(|(_, r)| r.hit).take(20) {
+        let ray = rec.pair.to_ray().unwrap();
+        for (j, e) in rec.exits.iter().enumerate() {
+            let mut rng = exit_rng(c.seed, i as u64, j as u32);
+            match tracer.walk(&ray, &mut rng) {
+                nppp_render::object_walk::Walk::Exit(w) => assert_eq!(&w, e, "ray {i}, exit {j}"),
+                nppp_render::object_walk::Walk::Miss => panic!("ray {i}: a hit that misses"),
+            }
+        }
+    }
+    let glass = object(&mesh, Material::Dielectric { ior: 1.5 });
+    assert!(!glass.header(&c).vertices);
+    assert!(records(&glass, &c).iter().all(|r| r.vertices.is_empty()));
 }

@@ -342,9 +342,17 @@ impl Columns {
 
     fn payload(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.bytes());
-        for c in
-            [&self.pairs, &self.hit_bits, &self.positions, &self.directions, &self.flags, &self.bounces, &self.throughput, &self.radiance, &self.vertices]
-        {
+        for c in [
+            &self.pairs,
+            &self.hit_bits,
+            &self.positions,
+            &self.directions,
+            &self.flags,
+            &self.bounces,
+            &self.throughput,
+            &self.radiance,
+            &self.vertices,
+        ] {
             out.extend_from_slice(c);
         }
         out
@@ -787,7 +795,10 @@ impl DatasetReader {
         header.sphere = BoundingSphere { center: Vec3::new(b[0], b[1], b[2]), radius: b[3] };
         check_header(&header).map_err(|what| DatasetError::Header { path: p(), what })?;
         if header.vertices && version < 2 {
-            return Err(DatasetError::Header { path: p(), what: format!("\"vertices\" in a version {version} file (vertices came with version 2)") });
+            return Err(DatasetError::Header {
+                path: p(),
+                what: format!("\"vertices\" in a version {version} file (vertices came with version 2)"),
+            });
         }
 
         // Trailer, then the index it points to.

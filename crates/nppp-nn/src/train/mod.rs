@@ -87,7 +87,11 @@ fn train_on(
     } else if cfg.model.vertex_head != has_vertices {
         bail!(
             "--resume: the checkpoint was trained {} a vertex head, and {} {} picked vertices",
-            if cfg.model.vertex_head { "with" } else { "without" },
+            if cfg.model.vertex_head {
+                "with"
+            } else {
+                "without"
+            },
             opts.data.display(),
             if has_vertices { "has" } else { "has no" }
         );
@@ -236,7 +240,15 @@ fn train_on(
     let evaluate_model = |model: &NpppModel| -> Result<HeldoutMetrics> {
         let mut est =
             BurnEstimator::new(model, data.transform.clone(), &info, cfg.model.noise_dim)?;
-        evaluate(&mut est, &data.heldout, data.k, &data.transform, &eval_opts)
+        est.vertex_transform = data.vertex_transform.clone();
+        evaluate(
+            &mut est,
+            &data.heldout,
+            data.k,
+            &data.transform,
+            data.vertex_transform.as_ref(),
+            &eval_opts,
+        )
     };
 
     let mut last_row_at = Instant::now();

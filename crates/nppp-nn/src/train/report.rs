@@ -77,6 +77,17 @@ impl std::fmt::Display for TrainReport {
                 100.0 * m.throughput_bias,
                 100.0 * m.throughput_noise_floor
             )?;
+            if let Some(v) = &m.vertex {
+                writeln!(
+                    f,
+                    "  vertex head chamfer {:.4}; light-sample throughput error per ray {:.2}% (bias \
+                     {:+.2}%); {:.4} sphere radii from the nearest real vertex",
+                    v.chamfer,
+                    100.0 * v.throughput_error,
+                    100.0 * v.throughput_bias,
+                    v.position_error
+                )?;
+            }
         }
         writeln!(
             f,

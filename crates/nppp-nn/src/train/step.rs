@@ -68,7 +68,11 @@ pub(super) fn make_batch(
     let mut features = Vec::with_capacity(b * INPUT_FEATURES);
     let mut real = Vec::with_capacity(b * k * EXIT_FEATURES);
     let with_vertices = cfg.model.vertex_head;
-    let mut real_vertices = Vec::with_capacity(if with_vertices { b * k * VERTEX_FEATURES } else { 0 });
+    let mut real_vertices = Vec::with_capacity(if with_vertices {
+        b * k * VERTEX_FEATURES
+    } else {
+        0
+    });
     let mut idx: Vec<u32> = (0..kf as u32).collect();
     for j in 0..b {
         let h = perm[(in_epoch * b + j) % n_hit] as usize;
@@ -169,21 +173,22 @@ pub(super) fn train_step(
     // in the total loss only (log.csv's columns stay the exits').
     let vertex_noise = (!vertex_noise.is_empty())
         .then(|| Tensor::<2>::from_data(TensorData::new(vertex_noise, [b * k, nd]), device));
-    let vertex_term = match vertex_noise.and_then(|vn| model.generate_vertices_from_latent(z, vn, k)) {
-        Some(gv) => {
-            let rv = Tensor::<3>::from_data(
-                TensorData::new(real_vertices, [b, k, VERTEX_FEATURES]),
-                device,
-            );
-            let dv = pairwise_sq_dists(gv.clone(), rv);
-            let mut t = chamfer_from_dists(dv.clone());
-            if cfg.energy_weight > 0.0 {
-                t = t + energy_distance_trainable(dv, gv).mul_scalar(cfg.energy_weight);
+    let vertex_term =
+        match vertex_noise.and_then(|vn| model.generate_vertices_from_latent(z, vn, k)) {
+            Some(gv) => {
+                let rv = Tensor::<3>::from_data(
+                    TensorData::new(real_vertices, [b, k, VERTEX_FEATURES]),
+                    device,
+                );
+                let dv = pairwise_sq_dists(gv.clone(), rv);
+                let mut t = chamfer_from_dists(dv.clone());
+                if cfg.energy_weight > 0.0 {
+                    t = t + energy_distance_trainable(dv, gv).mul_scalar(cfg.energy_weight);
+                }
+                t.mul_scalar(cfg.vertex_weight)
             }
-            t.mul_scalar(cfg.vertex_weight)
-        }
-        None => Tensor::<1>::zeros([1], device),
-    };
+            None => Tensor::<1>::zeros([1], device),
+        };
     let mf = Tensor::<2>::from_data(TensorData::new(mask_features, [bm, INPUT_FEATURES]), device);
     let ml = Tensor::<1>::from_data(TensorData::new(mask_labels, [bm]), device);
     let bce = bce_with_logits(model.mask_logits(mf), ml);

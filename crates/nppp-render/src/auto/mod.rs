@@ -423,7 +423,10 @@ pub fn label(c: Option<Choice>) -> String {
             EntryNee::FirstVertex => format!("P = {} + first-vertex NEE", c.min_bounces),
             EntryNee::PickedVertex => format!("P = {} + picked-vertex NEE", c.min_bounces),
             EntryNee::PickedVertexLightOnly => {
-                format!("P = {} + picked-vertex NEE (light sample alone)", c.min_bounces)
+                format!(
+                    "P = {} + picked-vertex NEE (light sample alone)",
+                    c.min_bounces
+                )
             }
         },
     }
