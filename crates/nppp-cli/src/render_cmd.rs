@@ -623,7 +623,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(e) = &rs.estimators {
         let st = &stats.estimators;
         eprintln!(
-            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {}, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped",
+            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {}, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped{}",
             a.estimators,
             e.min_bounces,
             st.entries,
@@ -635,7 +635,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             nppp_files::format_bytes(e.memory_bytes() as u64),
             st.repairs.degenerate,
             st.repairs.inward,
-            st.repairs.clamped
+            st.repairs.clamped,
+            if st.repairs.vertices > 0 {
+                format!(", {} picked vertices", st.repairs.vertices)
+            } else {
+                String::new()
+            }
         );
         for w in estimator_warnings(st) {
             eprintln!("warning: {w}");

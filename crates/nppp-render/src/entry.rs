@@ -98,6 +98,7 @@ impl EntryBatch {
                         if let Some(verts) =
                             sampler.sample_vertices(&mut self.decode, noise, &mut stats.repairs)
                         {
+                            stats.vertex_rows += verts.len() as u64;
                             for (&i, v) in rows.iter().zip(verts) {
                                 let depth = paths[self.entries[i].0].depth;
                                 let budget = max_bounces.saturating_sub(depth);

@@ -1,7 +1,8 @@
-//! Next-event estimation through the committed neural estimator
-//! (`--entry-nee first`): the entry's first vertex is found on the real
-//! mesh and gets a light sample, and a one-bounce exit's emitter hit is
-//! weighted by MIS against it. On the default scene the image mean must stay
+//! Next-event estimation through the committed neural estimator: with
+//! `--entry-nee first` the entry's first vertex is found on the real mesh
+//! and gets a light sample, and a one-bounce exit's emitter hit is weighted
+//! by MIS against it; with `--entry-nee picked` the estimator's vertex head
+//! returns the vertex. On the default scene the image mean must stay
 //! the network's (the method adds no bias) and the noise must fall well
 //! below the thesis' rendering, which finds the lamp only when an exit ray
 //! happens to hit it.
@@ -56,6 +57,39 @@ fn first_vertex_nee_keeps_the_mean_and_cuts_the_noise() {
         // Means at more samples: the network's own bias (about 1% bright on
         // the default knot) is all that may separate them from PT's.
         let big = render(EstimatorMode::Neural, p, EntryNee::FirstVertex, 256, 2);
+        let d = (sum(&big) - sum(&reference)).abs() / sum(&reference);
+        assert!(
+            d < 0.02,
+            "P={p}: mean {:.4} vs PT {:.4}",
+            sum(&big),
+            sum(&reference)
+        );
+    }
+}
+
+/// Picked-vertex NEE with the committed network (`--entry-nee picked`): its
+/// vertex head returns one skipped vertex per entry, the light sample there
+/// counts alone and the exit's emitter hit counts 0. It must keep the image
+/// mean near PT's and cut the noise below first-vertex NEE's, which lights
+/// the first vertex only (the default scene at 64 spp, 256x256: relMSE
+/// 0.00180 against 0.00285 at P = 1, PT's 0.00189).
+#[test]
+fn picked_vertex_nee_through_the_network_keeps_the_mean_and_beats_first_vertex() {
+    let reference = render(EstimatorMode::Off, 0, EntryNee::Off, 1024, 100);
+    let err = |img: &Image| nppp_render::metrics::rel_mse(img, &reference).unwrap();
+    for p in [1, 2] {
+        let first = render(EstimatorMode::Neural, p, EntryNee::FirstVertex, 32, 1);
+        let picked = render(EstimatorMode::Neural, p, EntryNee::PickedVertex, 32, 1);
+        let (e_first, e_picked) = (err(&first), err(&picked));
+        // P = 1 skips the second vertex, which first-vertex NEE leaves dark;
+        // at P = 2 the skipped vertices carry less light (48x48, 32 spp:
+        // 0.76x and 0.91x when this was written).
+        let bound = if p == 1 { 0.85 } else { 0.97 };
+        assert!(
+            e_picked < bound * e_first,
+            "P={p}: relMSE with first-vertex NEE {e_first:.5}, with picked-vertex NEE {e_picked:.5}"
+        );
+        let big = render(EstimatorMode::Neural, p, EntryNee::PickedVertex, 256, 2);
         let d = (sum(&big) - sum(&reference)).abs() / sum(&reference);
         assert!(
             d < 0.02,

@@ -74,6 +74,11 @@ pub const COST_PER_SHADOW_RAY: f64 = 2.7;
 /// One estimator entry (the latent lookup, its row of the batched decoder,
 /// decoding the exit; its mask test included).
 pub const COST_PER_ENTRY: f64 = 17.8;
+/// The vertex head's row of an entry (picked-vertex NEE): its noise, its
+/// decoder row and decoding the vertex. Not fitted: the entry's cost scaled
+/// by the share of those steps in an entry's criterion time (noise 90 ns and
+/// decoder 450 ns of 890 ns, BENCHMARKS.md "cornell-glass").
+pub const COST_PER_VERTEX_ROW: f64 = 11.0;
 /// A ray whose chord the mask judged a miss (the chord's coordinates and a
 /// mask lookup): the room of 2,025 knots makes about one per sample.
 pub const COST_PER_MASK_SKIP: f64 = 1.5;
@@ -85,6 +90,7 @@ pub fn work_cost(work: &WorkCounts, estimators: &EstimatorStats) -> f64 {
     inner as f64
         + COST_PER_SHADOW_RAY * work.shadow_rays as f64
         + COST_PER_ENTRY * estimators.entries as f64
+        + COST_PER_VERTEX_ROW * estimators.vertex_rows as f64
         + COST_PER_MASK_SKIP * estimators.mask_skips as f64
 }
 
@@ -433,11 +439,18 @@ pub fn label(c: Option<Choice>) -> String {
 }
 
 /// The configurations tried for an estimator: P = min_p..=max_p below M, with
-/// first-vertex NEE where its surface can take a light sample (without it,
-/// an opaque object's estimator lost 2x-5x more at equal error on every
-/// scene measured, BENCHMARKS.md), without on delta lobes (smooth glass).
+/// next-event estimation through the estimator where its surface can take a
+/// light sample (without it, an opaque object's estimator lost 2x-5x more at
+/// equal error on every scene measured, BENCHMARKS.md): at the picked vertex
+/// its file's vertex head returns, or else at the first vertex found on the
+/// real mesh; without on delta lobes (smooth glass).
 fn candidates(est: &crate::estimator::Estimator, opts: &PilotOptions) -> Vec<Choice> {
+    let has_vertex_head = matches!(
+        &est.model,
+        crate::estimator::EstimatorModel::Neural { sampler } if sampler.has_vertex_head()
+    );
     let entry_nee = match est.surface {
+        SurfaceKind::Scatter(b) if !b.is_delta() && has_vertex_head => EntryNee::PickedVertex,
         SurfaceKind::Scatter(b) if !b.is_delta() => EntryNee::FirstVertex,
         _ => EntryNee::Off,
     };
