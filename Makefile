@@ -30,9 +30,10 @@ DATA := $(OUT)/data/$(OBJECT_NAME).nppd
 MODEL := $(OUT)/model/$(OBJECT_NAME)
 ESTIMATOR := models/$(OBJECT_NAME).nppp
 # The committed estimator was made with exactly these (crates/nppp-nn/README.md):
-# 1 M rays (about 1 minute, 207 MiB), 24000 training steps (about 15-18
-# minutes on 2 cores; --minutes 0 keeps the run bit-reproducible), latent
-# grid 32^4 at 4 bits and mask grid 64^4 at 4 bits (16 MiB in all).
+# 1 M rays (about half a minute, 312 MiB with each exit's picked vertex),
+# 24000 training steps (about 33 minutes on 2 cores with the vertex head,
+# 15-18 without; --minutes 0 keeps the run bit-reproducible), latent grid
+# 32^4 at 4 bits and mask grid 64^4 at 4 bits (16 MiB in all).
 # `nppp gen`'s and `nppp train`'s defaults are that recipe
 # (nppp-estimator/src/recipe.rs): 1 M rays, k = 64.
 # Jade's walks average 95 scattering events (the knot's: 2), so its data is
@@ -40,7 +41,7 @@ ESTIMATOR := models/$(OBJECT_NAME).nppp
 GEN_RAYS_jade := --rays 300000
 GEN_FLAGS ?= --seed 0 $(GEN_RAYS_$(OBJECT))
 # The gold estimator was trained with the recipe shortened to 10000 steps
-# (about 7 minutes on 2 cores), as was jade; the knot and glass with the
+# (about 12 minutes on 2 cores with its vertex head), as was jade; the knot and glass with the
 # full 24000 (15-16 minutes). Glass at 10000 steps rendered cornell-glass
 # 0.5% too bright with 1.07x the relMSE (BENCHMARKS.md, "cornell-glass").
 TRAIN_STEPS_gold := --steps 10000
