@@ -96,36 +96,12 @@ impl ExitTransform {
     /// Fits mean and std over a set of exits (std floored so that constant
     /// features such as zero radiance stay finite).
     pub fn fit<'a>(exits: impl IntoIterator<Item = &'a Exit>) -> Self {
-        let mut n = 0.0f64;
-        let mut s = [0.0f64; EXIT_FEATURES];
-        let mut s2 = [0.0f64; EXIT_FEATURES];
-        for e in exits {
-            let f = Self::raw_features(e);
-            n += 1.0;
-            for i in 0..EXIT_FEATURES {
-                s[i] += f[i] as f64;
-                s2[i] += (f[i] as f64) * (f[i] as f64);
-            }
-        }
-        let mut t = Self::default();
-        if n == 0.0 {
-            return t;
-        }
-        for i in 0..EXIT_FEATURES {
-            let m = s[i] / n;
-            let var = (s2[i] / n - m * m).max(0.0);
-            t.mean[i] = m as f32;
-            t.std[i] = (var.sqrt() as f32).max(1e-3);
-        }
-        t
+        let (mean, std) = fit_mean_std(exits.into_iter().map(Self::raw_features));
+        Self { mean, std }
     }
 
     pub fn encode(&self, e: &Exit) -> [f32; EXIT_FEATURES] {
-        let mut f = Self::raw_features(e);
-        for ((v, m), s) in f.iter_mut().zip(&self.mean).zip(&self.std) {
-            *v = (*v - m) / s;
-        }
-        f
+        standardize(Self::raw_features(e), &self.mean, &self.std)
     }
 
     /// Inverts `encode`; repairs what a network may get wrong (unnormalized
@@ -190,6 +166,41 @@ impl ExitTransform {
         let bounces = (b.clamp(0.0, max_bounces as f32)) as u32;
         Exit { position, direction, throughput, radiance, bounces }
     }
+}
+
+/// Per-feature mean and standard deviation of feature rows (the std
+/// floored at 1e-3 so that a constant feature stays finite); mean 0, std 1
+/// for no rows. Shared by the exit and vertex transforms.
+pub(crate) fn fit_mean_std<const N: usize>(rows: impl Iterator<Item = [f32; N]>) -> ([f32; N], [f32; N]) {
+    let mut n = 0.0f64;
+    let mut s = [0.0f64; N];
+    let mut s2 = [0.0f64; N];
+    for f in rows {
+        n += 1.0;
+        for i in 0..N {
+            s[i] += f[i] as f64;
+            s2[i] += (f[i] as f64) * (f[i] as f64);
+        }
+    }
+    let (mut mean, mut std) = ([0.0f32; N], [1.0f32; N]);
+    if n == 0.0 {
+        return (mean, std);
+    }
+    for i in 0..N {
+        let m = s[i] / n;
+        let var = (s2[i] / n - m * m).max(0.0);
+        mean[i] = m as f32;
+        std[i] = (var.sqrt() as f32).max(1e-3);
+    }
+    (mean, std)
+}
+
+/// `(f - mean) / std`, per feature.
+pub(crate) fn standardize<const N: usize>(mut f: [f32; N], mean: &[f32; N], std: &[f32; N]) -> [f32; N] {
+    for ((v, m), s) in f.iter_mut().zip(mean).zip(std) {
+        *v = (*v - m) / s;
+    }
+    f
 }
 
 /// Normalizes without overflow: a finite vector with components near f32::MAX

@@ -16,7 +16,7 @@
 //! emitter hit, so the renderer counts the light at skipped vertices by
 //! light sampling alone (see `nppp-render`'s `EntryNee::PickedVertex`).
 
-use crate::exit::safe_normalize;
+use crate::exit::{fit_mean_std, safe_normalize, standardize};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
@@ -86,36 +86,12 @@ impl VertexTransform {
 
     /// Fits mean and std over a set of vertices (std floored at 1e-3).
     pub fn fit<'a>(vertices: impl IntoIterator<Item = &'a PickedVertex>) -> Self {
-        let mut n = 0.0f64;
-        let mut s = [0.0f64; VERTEX_FEATURES];
-        let mut s2 = [0.0f64; VERTEX_FEATURES];
-        for v in vertices {
-            let f = Self::raw_features(v);
-            n += 1.0;
-            for i in 0..VERTEX_FEATURES {
-                s[i] += f[i] as f64;
-                s2[i] += (f[i] as f64) * (f[i] as f64);
-            }
-        }
-        let mut t = Self::default();
-        if n == 0.0 {
-            return t;
-        }
-        for i in 0..VERTEX_FEATURES {
-            let m = s[i] / n;
-            let var = (s2[i] / n - m * m).max(0.0);
-            t.mean[i] = m as f32;
-            t.std[i] = (var.sqrt() as f32).max(1e-3);
-        }
-        t
+        let (mean, std) = fit_mean_std(vertices.into_iter().map(Self::raw_features));
+        Self { mean, std }
     }
 
     pub fn encode(&self, v: &PickedVertex) -> [f32; VERTEX_FEATURES] {
-        let mut f = Self::raw_features(v);
-        for ((x, m), s) in f.iter_mut().zip(&self.mean).zip(&self.std) {
-            *x = (*x - m) / s;
-        }
-        f
+        standardize(Self::raw_features(v), &self.mean, &self.std)
     }
 
     /// Inverts `encode` and repairs what a network may get wrong: a position

@@ -312,8 +312,10 @@ impl ExitSource for BakedSource {
         k: usize,
         seed: u64,
     ) -> Result<Option<Vec<PickedVertex>>> {
-        // As `sample_exits`, then the vertex head on the same rows with the
-        // vertex noise stream (the Burn side draws the same r').
+        // The rows' latents as `sample_exits` lays them out (the exit
+        // decoder runs on them, with zero noise, only for that), then the
+        // vertex head with the vertex noise stream (the Burn side draws the
+        // same r').
         let sampler = &self.sampler;
         if !sampler.has_vertex_head() {
             return Ok(None);

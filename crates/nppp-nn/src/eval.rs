@@ -115,6 +115,18 @@ impl BurnEstimator {
         )
     }
 
+    /// `[rays * k, noise_dim]` standard normals, ray `i`'s k rows from
+    /// `stream(i)`, so that they depend on the ray, not on the batching.
+    fn noise(&self, rays: usize, k: usize, stream: impl Fn(usize) -> SampleRng) -> Tensor<2> {
+        let nd = self.noise_dim;
+        let mut noise = Vec::with_capacity(rays * k * nd);
+        for i in 0..rays {
+            let mut rng = stream(i);
+            noise.extend((0..k * nd).map(|_| rng.normal()));
+        }
+        Tensor::from_data(TensorData::new(noise, [rays * k, nd]), &self.device)
+    }
+
     /// Encoder output for each ray, `[pairs.len()][latent_dim]`.
     pub fn latents(&self, pairs: &[SpherePair]) -> Result<Vec<f32>> {
         let mut out = Vec::new();
@@ -148,17 +160,11 @@ impl ExitSource for BurnEstimator {
         k: usize,
         seed: u64,
     ) -> Result<Vec<Exit>> {
-        let nd = self.noise_dim;
         let per_call = (ROWS_PER_CALL / k.max(1)).max(1);
         let mut out = Vec::with_capacity(pairs.len() * k);
         for (ci, chunk) in pairs.chunks(per_call).enumerate() {
-            let mut noise = Vec::with_capacity(chunk.len() * k * nd);
-            for j in 0..chunk.len() {
-                let mut rng = eval_rng(seed, first_index + (ci * per_call + j) as u64);
-                noise.extend((0..k * nd).map(|_| rng.normal()));
-            }
-            let noise =
-                Tensor::from_data(TensorData::new(noise, [chunk.len() * k, nd]), &self.device);
+            let first = first_index + (ci * per_call) as u64;
+            let noise = self.noise(chunk.len(), k, |i| eval_rng(seed, first + i as u64));
             let y = to_vec(self.model.generate(self.features(chunk), noise, k))?;
             for f in y.chunks_exact(EXIT_FEATURES) {
                 let f: &[f32; EXIT_FEATURES] = f.try_into().expect("chunk of EXIT_FEATURES");
@@ -183,17 +189,11 @@ impl ExitSource for BurnEstimator {
         let (Some(vt), true) = (&self.vertex_transform, self.model.vertex_decoder.is_some()) else {
             return Ok(None);
         };
-        let nd = self.noise_dim;
         let per_call = (ROWS_PER_CALL / k.max(1)).max(1);
         let mut out = Vec::with_capacity(pairs.len() * k);
         for (ci, chunk) in pairs.chunks(per_call).enumerate() {
-            let mut noise = Vec::with_capacity(chunk.len() * k * nd);
-            for j in 0..chunk.len() {
-                let mut rng = eval_vertex_rng(seed, first_index + (ci * per_call + j) as u64);
-                noise.extend((0..k * nd).map(|_| rng.normal()));
-            }
-            let noise =
-                Tensor::from_data(TensorData::new(noise, [chunk.len() * k, nd]), &self.device);
+            let first = first_index + (ci * per_call) as u64;
+            let noise = self.noise(chunk.len(), k, |i| eval_vertex_rng(seed, first + i as u64));
             let z = self.model.encode(self.features(chunk));
             let y = self
                 .model
@@ -395,12 +395,11 @@ pub fn evaluate(
     let rd_denom = if rd_real > 1e-9 { rd_real } else { nf };
     m.radiance_error = rd_abs / rd_denom;
     m.radiance_bias = rd_signed / rd_denom;
-    if let Some(vt) =
-        vertex_transform.filter(|_| split.vertices.len() == split.hits() * k * VERTEX_FEATURES)
+    let has_vertices = split.vertices.len() == split.hits() * k * VERTEX_FEATURES;
+    if let Some(vt) = vertex_transform.filter(|_| has_vertices)
+        && let Some(generated) = source.sample_vertices(&pairs, 0, k_gen, opts.seed)?
     {
-        if let Some(generated) = source.sample_vertices(&pairs, 0, k_gen, opts.seed)? {
-            m.vertex = Some(vertex_metrics(&generated, split, n, k, k_gen, kd, vt)?);
-        }
+        m.vertex = Some(vertex_metrics(&generated, split, n, k, k_gen, kd, vt)?);
     }
     Ok(m)
 }
