@@ -212,6 +212,14 @@ pub fn run(a: &GenArgs) -> Result<()> {
         "  mean exit throughput [{:.4} {:.4} {:.4}]",
         t[0], t[1], t[2]
     );
+    println!(
+        "  vertices    {}",
+        if obj.header(&cfg).vertices {
+            "each exit carries its walk's picked vertex (next-event estimation through the estimator: `nppp train` adds a vertex head)"
+        } else {
+            "none (a smooth dielectric or a medium takes no light sample inside)"
+        }
+    );
     let rate = nppp_files::format_rate;
     println!(
         "  time        {:.2}s: {}, {}, {} in the walks ({threads} threads)",

@@ -165,7 +165,25 @@ fn the_vertex_head_learns_the_first_hit_and_is_baked() {
                 .expect("the vertex head is scored"),
         )
     };
-    let (_, first) = train_for(1, "m1");
+    let (m1, first) = train_for(1, "m1");
+    // Resuming that run on data without vertices is refused, naming why.
+    let plain = dir.join("plain.nppd");
+    let mut w = DatasetWriter::create(&plain, synthetic_header("ball", k)).unwrap();
+    for r in (SyntheticObject::AbsorbingDiffuse { radius }).rays(1500, k, 3) {
+        w.write(&r).unwrap();
+    }
+    w.finish().unwrap();
+    let mut o = TrainOptions::new(&plain, &m1);
+    o.backend = BackendKind::Ndarray;
+    o.quiet = true;
+    o.resume = true;
+    o.epochs = Some(2);
+    o.minutes = 0.0;
+    let e = format!("{:#}", train(&o).unwrap_err());
+    assert!(
+        e.contains("trained with a vertex head") && e.contains("has no picked vertices"),
+        "{e}"
+    );
     let (model, last) = train_for(12, "m12");
     assert!(
         last.chamfer < first.chamfer / 3.0,
