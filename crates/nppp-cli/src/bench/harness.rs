@@ -17,7 +17,7 @@ use super::reference::{
 use super::report::{report_csv, report_markdown};
 use crate::bench_cmd::BenchArgs;
 use anyhow::{Context, Result, ensure};
-use nppp_render::estimator::{EstimatorMode, EstimatorStats, Estimators};
+use nppp_render::estimator::{EntryNee, EstimatorMode, EstimatorModel, EstimatorStats, Estimators};
 use nppp_render::metrics::{self, Errors};
 use nppp_render::{Image, RenderOptions, RenderScene, image_io};
 use std::path::{Path, PathBuf};
@@ -251,12 +251,20 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     } else {
         match Estimators::load(&scene, EstimatorMode::Neural, 0) {
             Ok(Some(e)) => {
-                neural = Some(e);
                 configs.extend(ps.iter().map(|&p| Config {
                     kind: Kind::Nppp,
                     m,
                     p,
                 }));
+                // NEE through the estimator where an object takes light samples.
+                if entry_nee_of(&e) != EntryNee::Off {
+                    configs.extend(ps.iter().map(|&p| Config {
+                        kind: Kind::NpppNee,
+                        m,
+                        p,
+                    }));
+                }
+                neural = Some(e);
             }
             Ok(None) => skipped.push(("NPPP (all P)".into(), "skipped: no estimator".into())),
             Err(e) => {
@@ -381,11 +389,15 @@ fn attach(
 ) -> usize {
     let src = match c.kind {
         Kind::Pt => None,
-        Kind::Nppp => neural.take(),
+        Kind::Nppp | Kind::NpppNee => neural.take(),
         Kind::Oracle => oracle.take(),
     };
     rs.estimators = src.map(|mut e| {
-        e.configure(c.p, nppp_render::estimator::EntryNee::Off);
+        let nee = match c.kind {
+            Kind::NpppNee => entry_nee_of(&e),
+            _ => EntryNee::Off,
+        };
+        e.configure(c.p, nee);
         e
     });
     rs.estimators
@@ -403,7 +415,28 @@ fn detach(
     let e = rs.estimators.take();
     match c.kind {
         Kind::Pt => {}
-        Kind::Nppp => *neural = e,
+        Kind::Nppp | Kind::NpppNee => *neural = e,
         Kind::Oracle => *oracle = e,
+    }
+}
+
+/// The NEE through the estimator a `+NEE` configuration uses: at the
+/// picked vertex when every estimator of an object that takes light
+/// samples has a vertex head, else at the first vertex; off when no object
+/// takes light samples (smooth glass, media).
+fn entry_nee_of(e: &Estimators) -> EntryNee {
+    let lit: Vec<_> = e
+        .list
+        .iter()
+        .filter(|est| nppp_render::datagen::picked_vertex_bsdf(est.surface).is_some())
+        .collect();
+    if lit.is_empty() {
+        EntryNee::Off
+    } else if lit.iter().all(
+        |est| matches!(&est.model, EstimatorModel::Neural { sampler } if sampler.has_vertex_head()),
+    ) {
+        EntryNee::PickedVertex
+    } else {
+        EntryNee::FirstVertex
     }
 }

@@ -107,6 +107,10 @@ impl Plan {
 pub(super) enum Kind {
     Pt,
     Nppp,
+    /// NPPP with next-event estimation through the estimator: at the
+    /// picked vertex where every lit estimator has a vertex head, else at
+    /// the first vertex (`--entry-nee picked` / `first`).
+    NpppNee,
     Oracle,
 }
 
@@ -116,12 +120,13 @@ impl Kind {
         match self {
             Kind::Pt => "pt",
             Kind::Nppp => "nppp",
+            Kind::NpppNee => "nppp-nee",
             Kind::Oracle => "oracle",
         }
     }
 
     pub(super) fn from_name(s: &str) -> Option<Self> {
-        [Kind::Pt, Kind::Nppp, Kind::Oracle]
+        [Kind::Pt, Kind::Nppp, Kind::NpppNee, Kind::Oracle]
             .into_iter()
             .find(|k| k.name() == s)
     }
@@ -139,6 +144,7 @@ impl Config {
         match self.kind {
             Kind::Pt => format!("PT M={}", self.m),
             Kind::Nppp => format!("NPPP P={}", self.p),
+            Kind::NpppNee => format!("NPPP P={} +NEE", self.p),
             Kind::Oracle => format!("oracle P={}", self.p),
         }
     }
@@ -151,13 +157,14 @@ impl Config {
     ) -> &'a RenderScene {
         match self.kind {
             Kind::Pt => pt,
-            Kind::Nppp | Kind::Oracle => with_estimators.unwrap_or(pt),
+            Kind::Nppp | Kind::NpppNee | Kind::Oracle => with_estimators.unwrap_or(pt),
         }
     }
     pub(super) fn slug(&self) -> String {
         match self.kind {
             Kind::Pt => format!("pt-m{}", self.m),
             Kind::Nppp => format!("nppp-p{}", self.p),
+            Kind::NpppNee => format!("nppp-nee-p{}", self.p),
             Kind::Oracle => format!("oracle-p{}", self.p),
         }
     }

@@ -124,7 +124,8 @@ pub(super) fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
 }
 
 /// Colour and line width of a configuration's curve: PT M = max in thick
-/// black, smaller M in lighter greys, NPPP one colour per P, the oracle purple.
+/// black, smaller M in lighter greys, NPPP one colour per P (thicker with
+/// NEE through the estimator), the oracle purple.
 fn curve_style(kind: Kind, m: u32, p: u32, mmax: u32) -> (plotters::style::RGBColor, u32) {
     use plotters::style::RGBColor;
     const NPPP_COLORS: [RGBColor; 4] = [
@@ -141,6 +142,7 @@ fn curve_style(kind: Kind, m: u32, p: u32, mmax: u32) -> (plotters::style::RGBCo
             (RGBColor(g, g, g), 1)
         }
         Kind::Nppp => (NPPP_COLORS[(p as usize).min(3)], 2),
+        Kind::NpppNee => (NPPP_COLORS[(p as usize).min(3)], 4),
         Kind::Oracle => (RGBColor(148, 103, 189), 1),
     }
 }
