@@ -1,5 +1,7 @@
-//! The neural estimator in Burn: encoder, decoder and mask network, their
-//! training (Chamfer + energy distance + mask BCE, Adam), the model
+//! The neural estimator in Burn: encoder, decoder and mask network (and,
+//! for objects that take light samples, the vertex head that returns a
+//! skipped vertex for next-event estimation), their training (Chamfer +
+//! energy distance + mask BCE, Adam), the model
 //! directory with its checksummed checkpoints (`model_dir`), baking to
 //! `.nppp`, and the decoder as a Burn backend of the estimator interface
 //! (`decoder::BurnDecoder`, an `nppp_estimator::ExitDecoder` that
