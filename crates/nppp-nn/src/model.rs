@@ -202,6 +202,16 @@ impl MlpNet {
     }
 }
 
+/// `net` on k copies of each row of z (`[B, latent]`), copy j of row i with
+/// noise row `i * k + j` of `noise` (`[B*k, noise_dim]`): one batched
+/// forward over B*k rows. Returns `[B, k, outputs]`.
+fn decode_k(net: &MlpNet, z: Tensor<2>, noise: Tensor<2>, k: usize, outputs: usize) -> Tensor<3> {
+    let [b, l] = z.dims();
+    let zk = z.unsqueeze_dim::<3>(1).repeat_dim(1, k).reshape([b * k, l]);
+    let x = Tensor::cat(vec![zk, noise], 1);
+    net.forward(x).reshape([b, k, outputs])
+}
+
 /// Encoder (ray -> z), decoder ((z, r) -> encoded exit) and mask network
 /// (ray -> logit). The mask network is separate from the encoder, as in the
 /// thesis: it trains on every ray (hits and misses) while the encoder only
@@ -277,10 +287,7 @@ impl NpppModel {
     /// (shared weights, one matmul over B*k rows) and each copy gets its own
     /// row of `noise` (`[B*k, noise_dim]`). Returns `[B, k, EXIT_FEATURES]`.
     pub fn generate_from_latent(&self, z: Tensor<2>, noise: Tensor<2>, k: usize) -> Tensor<3> {
-        let [b, l] = z.dims();
-        let zk = z.unsqueeze_dim::<3>(1).repeat_dim(1, k).reshape([b * k, l]);
-        let x = Tensor::cat(vec![zk, noise], 1);
-        self.decoder.forward(x).reshape([b, k, EXIT_FEATURES])
+        decode_k(&self.decoder, z, noise, k, EXIT_FEATURES)
     }
 
     /// The vertex head's k draws per ray, as [`Self::generate_from_latent`]
@@ -292,10 +299,7 @@ impl NpppModel {
         k: usize,
     ) -> Option<Tensor<3>> {
         let head = self.vertex_decoder.as_ref()?;
-        let [b, l] = z.dims();
-        let zk = z.unsqueeze_dim::<3>(1).repeat_dim(1, k).reshape([b * k, l]);
-        let x = Tensor::cat(vec![zk, noise], 1);
-        Some(head.forward(x).reshape([b, k, VERTEX_FEATURES]))
+        Some(decode_k(head, z, noise, k, VERTEX_FEATURES))
     }
 
     pub fn generate(&self, features: Tensor<2>, noise: Tensor<2>, k: usize) -> Tensor<3> {

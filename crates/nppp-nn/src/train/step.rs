@@ -162,13 +162,7 @@ pub(super) fn train_step(
     let noise = Tensor::<2>::from_data(TensorData::new(noise, [b * k, nd]), device);
     let z = model.encode(feats);
     let generated = model.generate_from_latent(z.clone(), noise, k);
-    let d = pairwise_sq_dists(generated.clone(), real.clone());
-    let chamfer = chamfer_from_dists(d.clone());
-    let energy = if cfg.energy_weight > 0.0 {
-        energy_distance_trainable(d, generated)
-    } else {
-        Tensor::<1>::zeros([1], device)
-    };
+    let (chamfer, energy) = set_distances(generated, real, cfg.energy_weight, device);
     // The vertex head's term: the same distances on the picked vertices,
     // in the total loss only (log.csv's columns stay the exits').
     let vertex_noise = (!vertex_noise.is_empty())
@@ -180,12 +174,8 @@ pub(super) fn train_step(
                     TensorData::new(real_vertices, [b, k, VERTEX_FEATURES]),
                     device,
                 );
-                let dv = pairwise_sq_dists(gv.clone(), rv);
-                let mut t = chamfer_from_dists(dv.clone());
-                if cfg.energy_weight > 0.0 {
-                    t = t + energy_distance_trainable(dv, gv).mul_scalar(cfg.energy_weight);
-                }
-                t.mul_scalar(cfg.vertex_weight)
+                let (c, e) = set_distances(gv, rv, cfg.energy_weight, device);
+                (c + e.mul_scalar(cfg.energy_weight)).mul_scalar(cfg.vertex_weight)
             }
             None => Tensor::<1>::zeros([1], device),
         };
@@ -216,6 +206,25 @@ pub(super) fn train_step(
     let grads = GradientsParams::from_grads(loss.backward(), &model);
     let model = optim.step(lr, model, grads);
     Ok((model, v))
+}
+
+/// Chamfer and (with a positive `energy_weight`, else zero) the trainable
+/// energy distance between each ray's generated and real sets, from one
+/// pairwise distance matrix.
+fn set_distances(
+    generated: Tensor<3>,
+    real: Tensor<3>,
+    energy_weight: f32,
+    device: &Device,
+) -> (Tensor<1>, Tensor<1>) {
+    let d = pairwise_sq_dists(generated.clone(), real);
+    let chamfer = chamfer_from_dists(d.clone());
+    let energy = if energy_weight > 0.0 {
+        energy_distance_trainable(d, generated)
+    } else {
+        Tensor::<1>::zeros([1], device)
+    };
+    (chamfer, energy)
 }
 
 pub(super) fn make_optimizer(cfg: &TrainConfig) -> ModuleOptimizer {
