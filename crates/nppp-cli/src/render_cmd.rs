@@ -170,8 +170,7 @@ fn check_vertex_heads(e: &Estimators) -> Result<()> {
         let EstimatorModel::Neural { sampler } = &est.model else {
             continue;
         };
-        let lit = nppp_render::datagen::picked_vertex_bsdf(est.surface).is_some();
-        if lit && !sampler.has_vertex_head() {
+        if est.takes_light_samples() && !est.has_vertex_head() {
             let m = sampler.meta();
             bail!(
                 "--entry-nee picked: the estimator of mesh '{}' ({}) has no vertex head, so it \

@@ -61,6 +61,20 @@ pub struct Estimator {
     pub entry_nee: EntryNee,
 }
 
+impl Estimator {
+    /// Whether its object takes light samples (a non-delta surface): where
+    /// next-event estimation through the estimator applies.
+    pub fn takes_light_samples(&self) -> bool {
+        crate::datagen::picked_vertex_bsdf(self.surface).is_some()
+    }
+
+    /// Whether it is a neural estimator whose file has a vertex head (it
+    /// returns a picked vertex for `EntryNee::PickedVertex`).
+    pub fn has_vertex_head(&self) -> bool {
+        matches!(&self.model, EstimatorModel::Neural { sampler } if sampler.has_vertex_head())
+    }
+}
+
 /// All estimators of a scene and which instance uses which.
 pub struct Estimators {
     pub list: Vec<Estimator>,

@@ -17,7 +17,7 @@ use super::reference::{
 use super::report::{report_csv, report_markdown};
 use crate::bench_cmd::BenchArgs;
 use anyhow::{Context, Result, ensure};
-use nppp_render::estimator::{EntryNee, EstimatorMode, EstimatorModel, EstimatorStats, Estimators};
+use nppp_render::estimator::{EntryNee, EstimatorMode, EstimatorStats, Estimators};
 use nppp_render::metrics::{self, Errors};
 use nppp_render::{Image, RenderOptions, RenderScene, image_io};
 use std::path::{Path, PathBuf};
@@ -425,16 +425,14 @@ fn detach(
 /// samples has a vertex head, else at the first vertex; off when no object
 /// takes light samples (smooth glass, media).
 fn entry_nee_of(e: &Estimators) -> EntryNee {
-    let lit: Vec<_> = e
+    let mut lit = e
         .list
         .iter()
-        .filter(|est| nppp_render::datagen::picked_vertex_bsdf(est.surface).is_some())
-        .collect();
-    if lit.is_empty() {
+        .filter(|est| est.takes_light_samples())
+        .peekable();
+    if lit.peek().is_none() {
         EntryNee::Off
-    } else if lit.iter().all(
-        |est| matches!(&est.model, EstimatorModel::Neural { sampler } if sampler.has_vertex_head()),
-    ) {
+    } else if lit.all(|est| est.has_vertex_head()) {
         EntryNee::PickedVertex
     } else {
         EntryNee::FirstVertex

@@ -43,7 +43,6 @@ use crate::image_io::Image;
 use crate::integrator::WorkCounts;
 use crate::render::{RenderOptions, render_film};
 use crate::scene_data::RenderScene;
-use crate::surface::SurfaceKind;
 use nppp_geom::rng::mix64;
 
 mod confirm;
@@ -445,14 +444,10 @@ pub fn label(c: Option<Choice>) -> String {
 /// its file's vertex head returns, or else at the first vertex found on the
 /// real mesh; without on delta lobes (smooth glass).
 fn candidates(est: &crate::estimator::Estimator, opts: &PilotOptions) -> Vec<Choice> {
-    let has_vertex_head = matches!(
-        &est.model,
-        crate::estimator::EstimatorModel::Neural { sampler } if sampler.has_vertex_head()
-    );
-    let entry_nee = match est.surface {
-        SurfaceKind::Scatter(b) if !b.is_delta() && has_vertex_head => EntryNee::PickedVertex,
-        SurfaceKind::Scatter(b) if !b.is_delta() => EntryNee::FirstVertex,
-        _ => EntryNee::Off,
+    let entry_nee = match (est.takes_light_samples(), est.has_vertex_head()) {
+        (true, true) => EntryNee::PickedVertex,
+        (true, false) => EntryNee::FirstVertex,
+        (false, _) => EntryNee::Off,
     };
     let min_p = if est.medium.is_some() {
         opts.min_p_medium
