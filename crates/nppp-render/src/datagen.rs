@@ -16,7 +16,6 @@
 //! without it.
 
 use crate::accel::Blas;
-use crate::bsdf::Bsdf;
 use crate::estimator::pick_skipped;
 use crate::medium::Medium;
 use crate::object_walk::{ObjectTracer, Walk, WalkVertex};
@@ -179,7 +178,9 @@ impl GenObject {
             seed: cfg.seed,
             max_internal_bounces: cfg.max_internal_bounces,
             shard: None,
-            vertices: picked_vertex_bsdf(SurfaceKind::of(&self.material)).is_some(),
+            vertices: SurfaceKind::of(&self.material)
+                .light_sampled_bsdf()
+                .is_some(),
         }
     }
 }
@@ -270,19 +271,8 @@ pub fn exit_rng(seed: u64, index: u64, j: u32) -> SampleRng {
     SampleRng::new(seed, index, 1 + u64::from(j))
 }
 
-/// The BSDF whose vertices get a light sample through the estimator
-/// (next-event estimation at a picked vertex): a non-delta surface. Glass
-/// (delta) and translucent objects (light is behind a smooth boundary) have
-/// none, and their data no vertices.
-pub fn picked_vertex_bsdf(surface: SurfaceKind) -> Option<Bsdf> {
-    match surface {
-        SurfaceKind::Scatter(b) if !b.is_delta() => Some(b),
-        _ => None,
-    }
-}
-
 /// One input ray with its label and, for a hit, its k exits (and their
-/// picked vertices, for an object with [`picked_vertex_bsdf`]).
+/// picked vertices, for an object with [`SurfaceKind::light_sampled_bsdf`]).
 pub fn trace_ray(tracer: &ObjectTracer, seed: u64, index: u64, k: u32) -> RayRecord {
     let (pair, ray) = input_ray(seed, index);
     if !tracer.hits(&ray) {
@@ -293,7 +283,7 @@ pub fn trace_ray(tracer: &ObjectTracer, seed: u64, index: u64, k: u32) -> RayRec
             vertices: Vec::new(),
         };
     }
-    let nee_bsdf = picked_vertex_bsdf(tracer.surface);
+    let nee_bsdf = tracer.surface.light_sampled_bsdf();
     let mut walks: Vec<(Exit, Option<PickedVertex>)> = Vec::with_capacity(k as usize);
     (0..k)
         .into_par_iter()

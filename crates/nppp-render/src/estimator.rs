@@ -65,7 +65,7 @@ impl Estimator {
     /// Whether its object takes light samples (a non-delta surface): where
     /// next-event estimation through the estimator applies.
     pub fn takes_light_samples(&self) -> bool {
-        crate::datagen::picked_vertex_bsdf(self.surface).is_some()
+        self.surface.light_sampled_bsdf().is_some()
     }
 
     /// Whether it is a neural estimator whose file has a vertex head (it

@@ -17,6 +17,17 @@ pub enum SurfaceKind {
 }
 
 impl SurfaceKind {
+    /// The BSDF whose vertices take light samples, so that next-event
+    /// estimation through an estimator applies (and data generation records
+    /// a picked vertex per walk): a non-delta surface. Glass (delta) and
+    /// translucent objects (light is behind a smooth boundary) have none.
+    pub fn light_sampled_bsdf(self) -> Option<Bsdf> {
+        match self {
+            SurfaceKind::Scatter(b) if !b.is_delta() => Some(b),
+            _ => None,
+        }
+    }
+
     /// What a material does to a path at its surface (a translucent
     /// object's boundary is its dielectric interface; the medium inside is
     /// `Medium::of`).
