@@ -9,7 +9,10 @@ metric), and the equal-error speed-up (t_PT x relMSE_PT) / (t x relMSE).
 A configuration is a label and the extra `nppp render` flags, e.g.
     --config "NPPP P=1" "--estimators neural --min-bounces 1"
 PT (`--estimators off`) is always measured first. The scene's render block
-gives M unless --max-bounces is set. Standard library only; not part of the
+gives M unless --max-bounces is set. `--scene-for LABEL SCENE` renders one
+configuration from another scene file, e.g. a copy of the scene whose
+instances name another estimator file, to compare two estimators in one
+run (the copy must differ only in `estimator` keys: PT renders --scene). Standard library only; not part of the
 pipeline or of `make test`.
 
     python3 tools/equal_error.py --nppp ~/.cache/nppp-target/release/nppp \\
@@ -57,7 +60,15 @@ def main():
                     help="flags for every render, the reference's included (e.g. \"--scale 0.5\")")
     ap.add_argument("--config", nargs=2, action="append", default=[],
                     metavar=("LABEL", "FLAGS"), help="a configuration to compare with PT")
+    ap.add_argument("--scene-for", nargs=2, action="append", default=[],
+                    metavar=("LABEL", "SCENE"),
+                    help="render configuration LABEL from SCENE instead of --scene")
     a = ap.parse_args()
+    labels = {l for l, _ in a.config}
+    scene_for = dict(a.scene_for)
+    for label in scene_for:
+        if label not in labels:
+            ap.error(f"--scene-for {label!r}: no --config has that label")
     common = ["--max-bounces", str(a.max_bounces)] if a.max_bounces is not None else []
     common += shlex.split(a.common)
     tmp = tempfile.mkdtemp(prefix="nppp-equal-error-")
@@ -73,7 +84,8 @@ def main():
     out = str(Path(tmp) / "img.exr")
     for rnd in range(1, a.rounds + 1):
         for label, flags in configs:
-            t, r, m = render(a.nppp, a.scene, a.spp, rnd, flags + common, reference, out)
+            scene = scene_for.get(label, a.scene)
+            t, r, m = render(a.nppp, scene, a.spp, rnd, flags + common, reference, out)
             times[label].append(t)
             errs[label].append(r)
             means[label].append(m)

@@ -115,6 +115,10 @@ pub struct TrainArgs {
     /// Latent size (z); the baked grid stores this many channels.
     #[arg(long)]
     pub latent_dim: Option<usize>,
+    /// Standard normals per decoder row (r); an entry draws this many per
+    /// decoder row in the renderer.
+    #[arg(long)]
+    pub noise_dim: Option<usize>,
     /// Encoder hidden width.
     #[arg(long)]
     pub encoder_width: Option<usize>,
@@ -160,6 +164,7 @@ impl TrainArgs {
             steps_per_epoch: self.steps_per_epoch,
             eval_rays: self.eval_rays,
             latent_dim: self.latent_dim,
+            noise_dim: self.noise_dim,
             encoder_width: self.encoder_width,
             decoder_width: self.decoder_width,
             mask_width: self.mask_width,

@@ -74,6 +74,9 @@ pub struct TrainOptions {
     pub eval_rays: Option<usize>,
     /// Latent size (z); the baked grid stores this many channels.
     pub latent_dim: Option<usize>,
+    /// Standard normals per decoder row (r): each renderer entry draws this
+    /// many per decoder.
+    pub noise_dim: Option<usize>,
     /// Encoder hidden width.
     pub encoder_width: Option<usize>,
     /// Decoder hidden width.
@@ -114,6 +117,7 @@ impl TrainOptions {
             steps_per_epoch: None,
             eval_rays: None,
             latent_dim: None,
+            noise_dim: None,
             encoder_width: None,
             decoder_width: None,
             mask_width: None,
@@ -310,6 +314,7 @@ macro_rules! kept_hyperparameters {
         $apply!("holdout-every", holdout_every, holdout_every);
         $apply!("steps-per-epoch", steps_per_epoch, steps_per_epoch);
         $apply!("latent-dim", latent_dim, model.latent_dim);
+        $apply!("noise-dim", noise_dim, model.noise_dim);
         $apply!("encoder-width", encoder_width, model.encoder_width);
         $apply!("decoder-width", decoder_width, model.decoder_width);
         $apply!("mask-width", mask_width, model.mask_width);
