@@ -124,6 +124,39 @@ fn decoder(c: &mut Criterion) {
     g.finish();
 }
 
+/// Every committed estimator's CPU decoder at the renderer's batch size
+/// (about 128 entries per wavefront step on the default scene): what one
+/// decoder row costs by the decoder's size, the measurement behind
+/// `auto::COST_PER_DECODER_MULTIPLY_ADD`. `NPPP_BENCH_ESTIMATORS` (paths
+/// separated by commas) measures other files instead.
+fn decoder_sizes(c: &mut Criterion) {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models");
+    let files: Vec<std::path::PathBuf> = match std::env::var("NPPP_BENCH_ESTIMATORS") {
+        Ok(list) => list.split(',').map(Into::into).collect(),
+        Err(_) => ["cornell-knot", "cornell-gold", "cornell-glass", "cornell-jade"]
+            .iter()
+            .map(|n| root.join(format!("{n}.nppp")))
+            .collect(),
+    };
+    let rows = 128;
+    let mut g = c.benchmark_group("estimator_decoder_rows");
+    g.throughput(Throughput::Elements(rows as u64));
+    for file in files {
+        let baked = BakedEstimator::load(&file).expect("estimator file");
+        let macs = baked.decoder.multiply_adds();
+        let s = EstimatorSampler::new(baked);
+        let n = s.latent_dim() + s.noise_dim();
+        let mut rng = SampleRng::from_seed(8);
+        let input: Vec<f32> = (0..rows * n).map(|_| rng.normal()).collect();
+        let mut out = vec![0.0f32; rows * EXIT_FEATURES];
+        let name = file.file_stem().map_or("?".into(), |s| s.to_string_lossy().into_owned());
+        g.bench_function(BenchmarkId::new(name, format!("{macs}_multiply_adds")), |b| {
+            b.iter(|| s.cpu_decoder().forward(&input, &mut out))
+        });
+    }
+    g.finish();
+}
+
 /// Box-Muller as `SampleRng::normal` drew before it used the ziggurat
 /// (one of the pair discarded): the bench's reference.
 fn box_muller(rng: &mut SampleRng) -> f32 {
@@ -152,5 +185,5 @@ fn noise(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, grids, decoder, noise);
+criterion_group!(benches, grids, decoder, decoder_sizes, noise);
 criterion_main!(benches);

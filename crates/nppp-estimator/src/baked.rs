@@ -542,7 +542,7 @@ impl BakedEstimator {
         let widths: Vec<String> =
             std::iter::once(self.decoder.inputs()).chain(self.decoder.layers.iter().map(|l| l.outputs)).map(|w| w.to_string()).collect();
         let params: usize = self.decoder.layers.iter().map(|l| l.weight.len() + l.bias.len()).sum();
-        let macs: usize = self.decoder.layers.iter().map(|l| l.weight.len()).sum();
+        let macs = self.decoder.multiply_adds();
         let _ = writeln!(
             s,
             "  decoder:   {} (ReLU), {params} parameters = {}, {macs} multiply-adds per sample",
@@ -567,7 +567,7 @@ impl BakedEstimator {
         );
         match &self.vertex {
             Some(v) => {
-                let macs: usize = v.decoder.layers.iter().map(|l| l.weight.len()).sum();
+                let macs = v.decoder.multiply_adds();
                 let _ = writeln!(
                     s,
                     "  vertex head: a skipped vertex for next-event estimation (`--entry-nee picked`), {macs} multiply-adds per sample"

@@ -27,6 +27,11 @@ impl Mlp {
         self.layers.last().map_or(0, |l| l.outputs)
     }
 
+    /// Multiply-adds per row: what one decoder row costs.
+    pub fn multiply_adds(&self) -> usize {
+        self.layers.iter().map(|l| l.inputs * l.outputs).sum()
+    }
+
     /// Widest layer, i.e. the scratch size `forward` needs per row.
     pub fn max_width(&self) -> usize {
         self.layers.iter().map(|l| l.inputs.max(l.outputs)).max().unwrap_or(0)

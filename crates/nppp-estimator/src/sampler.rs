@@ -83,6 +83,16 @@ impl EstimatorSampler {
         self.backend.as_deref().map_or(self.cpu.name(), |b| b.name())
     }
 
+    /// Multiply-adds of one exit decoder row.
+    pub fn decoder_multiply_adds(&self) -> usize {
+        self.baked.decoder.multiply_adds()
+    }
+
+    /// Multiply-adds of one vertex head row, if the file has a head.
+    pub fn vertex_multiply_adds(&self) -> Option<usize> {
+        self.baked.vertex.as_ref().map(|v| v.decoder.multiply_adds())
+    }
+
     /// The plain-Rust decoder (for measuring it alone).
     pub fn cpu_decoder(&self) -> &CpuDecoder {
         &self.cpu

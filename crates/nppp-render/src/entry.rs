@@ -83,6 +83,7 @@ impl EntryBatch {
                     );
                     stats.decoder_fallbacks += u64::from(decoded.fell_back);
                     stats.decoder_batches += 1;
+                    stats.count_decoder_rows(rows.len(), sampler.decoder_multiply_adds(), sampler.noise_dim());
                     for (&i, exit) in rows.iter().zip(decoded.exits) {
                         self.exits[i] = *exit;
                     }
@@ -98,7 +99,8 @@ impl EntryBatch {
                         if let Some(verts) =
                             sampler.sample_vertices(&mut self.decode, noise, &mut stats.repairs)
                         {
-                            stats.vertex_rows += verts.len() as u64;
+                            let macs = sampler.vertex_multiply_adds().unwrap_or(0);
+                            stats.count_decoder_rows(verts.len(), macs, sampler.noise_dim());
                             for (&i, v) in rows.iter().zip(verts) {
                                 let depth = paths[self.entries[i].0].depth;
                                 let budget = max_bounces.saturating_sub(depth);

@@ -336,12 +336,24 @@ pub struct EstimatorStats {
     /// entries): `entries / decoder_batches` is the batch size a decoder
     /// backend sees in this render.
     pub decoder_batches: u64,
-    /// Entries whose picked vertex a vertex head decoded (a second decoder
-    /// row each).
-    pub vertex_rows: u64,
+    /// Decoder rows run: one per neural entry, and one more per entry whose
+    /// picked vertex a vertex head decoded.
+    pub decoder_rows: u64,
+    /// Their multiply-adds (rows times each decoder's size).
+    pub decoder_multiply_adds: u64,
+    /// Standard normals drawn as their noise.
+    pub decoder_normals: u64,
 }
 
 impl EstimatorStats {
+    /// `rows` decoder rows of `multiply_adds` each, with `noise_dim`
+    /// standard normals each.
+    pub fn count_decoder_rows(&mut self, rows: usize, multiply_adds: usize, noise_dim: usize) {
+        self.decoder_rows += rows as u64;
+        self.decoder_multiply_adds += (rows * multiply_adds) as u64;
+        self.decoder_normals += (rows * noise_dim) as u64;
+    }
+
     pub fn merge(&mut self, o: &EstimatorStats) {
         self.entries += o.entries;
         self.mask_skips += o.mask_skips;
@@ -349,7 +361,9 @@ impl EstimatorStats {
         self.over_max_bounces += o.over_max_bounces;
         self.decoder_fallbacks += o.decoder_fallbacks;
         self.decoder_batches += o.decoder_batches;
-        self.vertex_rows += o.vertex_rows;
+        self.decoder_rows += o.decoder_rows;
+        self.decoder_multiply_adds += o.decoder_multiply_adds;
+        self.decoder_normals += o.decoder_normals;
         self.repairs.degenerate += o.repairs.degenerate;
         self.repairs.inward += o.repairs.inward;
         self.repairs.clamped += o.repairs.clamped;

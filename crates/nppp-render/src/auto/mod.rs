@@ -16,10 +16,10 @@
 //!   relMSE is to its reference (`/ (r^2 + 0.01)`, `r` blurred over 5 x 5
 //!   pixels), averaged over pixels and channels;
 //! - the cost per sample: the work the render counted (inner BVH node
-//!   visits of all but the camera rays, shadow rays, estimator entries,
-//!   mask skips) weighted by what each costs ([`work_cost`]). Counted
-//!   work, not the wall clock: the decision, and so the image, is the same
-//!   at any thread count and on a busy machine;
+//!   visits of all but the camera rays, shadow rays, estimator entries and
+//!   their decoder rows by size, mask skips) weighted by what each costs
+//!   ([`work_cost`]). Counted work, not the wall clock: the decision, and
+//!   so the image, is the same at any thread count and on a busy machine;
 //! - its image mean against PT's: a configuration whose mean differs by more
 //!   than noise and [`PilotOptions::bias_tolerance`] is rejected (a network
 //!   that misses light has little variance and would look efficient).
@@ -70,14 +70,25 @@ pub use confirm::{Plan, Segment, plan};
 /// A shadow ray beyond its node visits (the light sample, the BSDF
 /// evaluation, the MIS weights).
 pub const COST_PER_SHADOW_RAY: f64 = 2.7;
-/// One estimator entry (the latent lookup, its row of the batched decoder,
-/// decoding the exit; its mask test included).
-pub const COST_PER_ENTRY: f64 = 17.8;
-/// The vertex head's row of an entry (picked-vertex NEE): its noise, its
-/// decoder row and decoding the vertex. Not fitted: the entry's cost scaled
-/// by the share of those steps in an entry's criterion time (noise 90 ns and
-/// decoder 450 ns of 890 ns, BENCHMARKS.md "cornell-glass").
-pub const COST_PER_VERTEX_ROW: f64 = 11.0;
+/// One estimator entry beyond its decoder rows: the latent lookup, decoding
+/// the exit, its mask test. The fit above gave 17.8 per entry with the
+/// 11,072-multiply-add decoder and 16 noise dimensions every file then had;
+/// that is split here by the shares of an entry's criterion time (noise
+/// 90 ns and decoder 450 ns of 890 ns, BENCHMARKS.md "cornell-glass"), so
+/// that a smaller or larger decoder, and a vertex head's second row, are
+/// counted by what they compute: 7.0 (this) + 1.1 (the row) + 7.9 (its
+/// 11,072 multiply-adds) + 1.8 (16 normals) = 17.8 for such an entry.
+pub const COST_PER_ENTRY: f64 = 7.0;
+/// A decoder row's share that does not grow with its size (the row's
+/// bookkeeping and the exit's or vertex's decoding): a 128-row batch of the
+/// 3,488-multiply-add decoder took 0.40x the time of the 11,072 one's, not
+/// 0.32x (`estimator_decoder_rows`, BENCHMARKS.md "Smaller decoders").
+pub const COST_PER_DECODER_ROW: f64 = 1.1;
+/// One multiply-add of a decoder row: the decoder's 450 ns (9.0 units)
+/// less the row's fixed part, over the 11,072 multiply-adds it did.
+pub const COST_PER_DECODER_MULTIPLY_ADD: f64 = 7.9 / 11_072.0;
+/// One standard normal of a decoder row's noise (the ziggurat).
+pub const COST_PER_DECODER_NORMAL: f64 = 0.1125;
 /// A ray whose chord the mask judged a miss (the chord's coordinates and a
 /// mask lookup): the room of 2,025 knots makes about one per sample.
 pub const COST_PER_MASK_SKIP: f64 = 1.5;
@@ -89,7 +100,9 @@ pub fn work_cost(work: &WorkCounts, estimators: &EstimatorStats) -> f64 {
     inner as f64
         + COST_PER_SHADOW_RAY * work.shadow_rays as f64
         + COST_PER_ENTRY * estimators.entries as f64
-        + COST_PER_VERTEX_ROW * estimators.vertex_rows as f64
+        + COST_PER_DECODER_ROW * estimators.decoder_rows as f64
+        + COST_PER_DECODER_MULTIPLY_ADD * estimators.decoder_multiply_adds as f64
+        + COST_PER_DECODER_NORMAL * estimators.decoder_normals as f64
         + COST_PER_MASK_SKIP * estimators.mask_skips as f64
 }
 
@@ -893,6 +906,25 @@ pub fn efficiency(pt: &Trial, t: &Trial, tau: f64) -> f64 {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// The split of the fitted entry cost adds back up to it for the
+    /// decoder it was fitted on, and a smaller decoder costs less.
+    #[test]
+    fn an_entry_costs_what_was_fitted_and_less_with_a_smaller_decoder() {
+        let work = WorkCounts::default();
+        let entry = |macs: usize, noise: usize, heads: usize| {
+            let mut st = EstimatorStats { entries: 1, ..Default::default() };
+            for _ in 0..heads {
+                st.count_decoder_rows(1, macs, noise);
+            }
+            work_cost(&work, &st)
+        };
+        assert!((entry(11_072, 16, 1) - 17.8).abs() < 0.01, "{}", entry(11_072, 16, 1));
+        // A vertex head of the same size: its row, as the fit's 11 units.
+        assert!((entry(11_072, 16, 2) - entry(11_072, 16, 1) - 10.8).abs() < 0.01);
+        assert!(entry(3_488, 16, 1) < 0.7 * entry(11_072, 16, 1));
+        assert!(entry(3_488, 8, 1) < entry(3_488, 16, 1));
+    }
 
     /// A trial of P = `min_bounces` (`None`: PT), image mean 0.5.
     pub(super) fn trial(
