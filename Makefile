@@ -31,9 +31,10 @@ MODEL := $(OUT)/model/$(OBJECT_NAME)
 ESTIMATOR := models/$(OBJECT_NAME).nppp
 # The committed estimator was made with exactly these (crates/nppp-nn/README.md):
 # 1 M rays (about half a minute, 312 MiB with each exit's picked vertex),
-# 24000 training steps (about 33 minutes on 2 cores with the vertex head,
-# 15-18 without; --minutes 0 keeps the run bit-reproducible), latent grid
-# 32^4 at 4 bits and mask grid 64^4 at 4 bits (16 MiB in all).
+# 24000 training steps (about 21 minutes on 2 cores with the vertex head and
+# the knot's 32-wide decoders, 33 with 64-wide ones; --minutes 0 keeps the
+# run bit-reproducible), latent grid 32^4 at 4 bits and mask grid 64^4 at 4
+# bits (16 MiB in all).
 # `nppp gen`'s and `nppp train`'s defaults are that recipe
 # (nppp-estimator/src/recipe.rs): 1 M rays, k = 64.
 # Jade's walks average 95 scattering events (the knot's: 2), so its data is
@@ -41,12 +42,19 @@ ESTIMATOR := models/$(OBJECT_NAME).nppp
 GEN_RAYS_jade := --rays 300000
 GEN_FLAGS ?= --seed 0 $(GEN_RAYS_$(OBJECT))
 # The gold estimator was trained with the recipe shortened to 10000 steps
-# (about 12 minutes on 2 cores with its vertex head), as was jade; the knot and glass with the
-# full 24000 (15-16 minutes). Glass at 10000 steps rendered cornell-glass
-# 0.5% too bright with 1.07x the relMSE (BENCHMARKS.md, "cornell-glass").
+# (about 8 minutes on 2 cores with its vertex head), as was jade; the knot and
+# glass with the full 24000 (knot about 21 minutes, glass 15-16). Glass at
+# 10000 steps rendered cornell-glass 0.5% too bright with 1.07x the relMSE
+# (BENCHMARKS.md, "cornell-glass").
 TRAIN_STEPS_gold := --steps 10000
 TRAIN_STEPS_jade := --steps 10000
-TRAIN_FLAGS ?= --seed 1 --minutes 0 $(TRAIN_STEPS_$(OBJECT))
+# The opaque knots' decoders and vertex heads are 32 wide (3,488
+# multiply-adds a row instead of 11,072): the same relMSE or less, and
+# entries cheap enough to lift NPPP by 8-16% at equal error; glass keeps 64,
+# where 32 had 1.04x the relMSE at P = 1 (BENCHMARKS.md, "Smaller decoders").
+TRAIN_MODEL_knot := --decoder-width 32
+TRAIN_MODEL_gold := --decoder-width 32
+TRAIN_FLAGS ?= --seed 1 --minutes 0 $(TRAIN_STEPS_$(OBJECT)) $(TRAIN_MODEL_$(OBJECT))
 BAKE_FLAGS ?= --latent-grid 32 --bits 4 --mask-grid 64 --mask-bits 4
 
 .PHONY: all build render test test-wgpu test-cluster bench clean help data train bake speed
