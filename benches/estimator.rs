@@ -133,10 +133,15 @@ fn decoder_sizes(c: &mut Criterion) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models");
     let files: Vec<std::path::PathBuf> = match std::env::var("NPPP_BENCH_ESTIMATORS") {
         Ok(list) => list.split(',').map(Into::into).collect(),
-        Err(_) => ["cornell-knot", "cornell-gold", "cornell-glass", "cornell-jade"]
-            .iter()
-            .map(|n| root.join(format!("{n}.nppp")))
-            .collect(),
+        Err(_) => [
+            "cornell-knot",
+            "cornell-gold",
+            "cornell-glass",
+            "cornell-jade",
+        ]
+        .iter()
+        .map(|n| root.join(format!("{n}.nppp")))
+        .collect(),
     };
     let rows = 128;
     let mut g = c.benchmark_group("estimator_decoder_rows");
@@ -149,10 +154,13 @@ fn decoder_sizes(c: &mut Criterion) {
         let mut rng = SampleRng::from_seed(8);
         let input: Vec<f32> = (0..rows * n).map(|_| rng.normal()).collect();
         let mut out = vec![0.0f32; rows * EXIT_FEATURES];
-        let name = file.file_stem().map_or("?".into(), |s| s.to_string_lossy().into_owned());
-        g.bench_function(BenchmarkId::new(name, format!("{macs}_multiply_adds")), |b| {
-            b.iter(|| s.cpu_decoder().forward(&input, &mut out))
-        });
+        let name = file
+            .file_stem()
+            .map_or("?".into(), |s| s.to_string_lossy().into_owned());
+        g.bench_function(
+            BenchmarkId::new(name, format!("{macs}_multiply_adds")),
+            |b| b.iter(|| s.cpu_decoder().forward(&input, &mut out)),
+        );
     }
     g.finish();
 }

@@ -83,7 +83,11 @@ impl EntryBatch {
                     );
                     stats.decoder_fallbacks += u64::from(decoded.fell_back);
                     stats.decoder_batches += 1;
-                    stats.count_decoder_rows(rows.len(), sampler.decoder_multiply_adds(), sampler.noise_dim());
+                    stats.count_decoder_rows(
+                        rows.len(),
+                        sampler.decoder_multiply_adds(),
+                        sampler.noise_dim(),
+                    );
                     for (&i, exit) in rows.iter().zip(decoded.exits) {
                         self.exits[i] = *exit;
                     }

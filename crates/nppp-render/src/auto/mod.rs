@@ -913,13 +913,20 @@ mod tests {
     fn an_entry_costs_what_was_fitted_and_less_with_a_smaller_decoder() {
         let work = WorkCounts::default();
         let entry = |macs: usize, noise: usize, heads: usize| {
-            let mut st = EstimatorStats { entries: 1, ..Default::default() };
+            let mut st = EstimatorStats {
+                entries: 1,
+                ..Default::default()
+            };
             for _ in 0..heads {
                 st.count_decoder_rows(1, macs, noise);
             }
             work_cost(&work, &st)
         };
-        assert!((entry(11_072, 16, 1) - 17.8).abs() < 0.01, "{}", entry(11_072, 16, 1));
+        assert!(
+            (entry(11_072, 16, 1) - 17.8).abs() < 0.01,
+            "{}",
+            entry(11_072, 16, 1)
+        );
         // A vertex head of the same size: its row, as the fit's 11 units.
         assert!((entry(11_072, 16, 2) - entry(11_072, 16, 1) - 10.8).abs() < 0.01);
         assert!(entry(3_488, 16, 1) < 0.7 * entry(11_072, 16, 1));
