@@ -12,8 +12,8 @@ PT (`--estimators off`) is always measured first. The scene's render block
 gives M unless --max-bounces is set. `--scene-for LABEL SCENE` renders one
 configuration from another scene file, e.g. a copy of the scene whose
 instances name another estimator file, to compare two estimators in one
-run (the copy must differ only in `estimator` keys: PT renders --scene). Standard library only; not part of the
-pipeline or of `make test`.
+run (the copy must differ only in `estimator` keys: PT renders --scene).
+Standard library only; not part of the pipeline or of `make test`.
 
     python3 tools/equal_error.py --nppp ~/.cache/nppp-target/release/nppp \\
         --scene data/scenes/cornell-glass.json --spp 64 --rounds 3 \\

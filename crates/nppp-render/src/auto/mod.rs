@@ -79,8 +79,8 @@ pub const COST_PER_SHADOW_RAY: f64 = 2.7;
 /// counted by what they compute: 7.0 (this) + 1.1 (the row) + 7.9 (its
 /// 11,072 multiply-adds) + 1.8 (16 normals) = 17.8 for such an entry.
 pub const COST_PER_ENTRY: f64 = 7.0;
-/// A decoder row's share that does not grow with its size (the row's
-/// bookkeeping and the exit's or vertex's decoding): a 128-row batch of the
+/// The part of a decoder row's time that does not grow with its size (the
+/// matrix products' per-row overhead): a 128-row batch of the
 /// 3,488-multiply-add decoder took 0.40x the time of the 11,072 one's, not
 /// 0.32x (`estimator_decoder_rows`, BENCHMARKS.md "Smaller decoders").
 pub const COST_PER_DECODER_ROW: f64 = 1.1;
