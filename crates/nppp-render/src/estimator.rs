@@ -73,6 +73,18 @@ impl Estimator {
     pub fn has_vertex_head(&self) -> bool {
         matches!(&self.model, EstimatorModel::Neural { sampler } if sampler.has_vertex_head())
     }
+
+    /// The next-event estimation through this estimator that applies: at
+    /// the picked vertex its file's vertex head returns, else at the first
+    /// vertex found on the real mesh; off where its object takes no light
+    /// sample (delta lobes: smooth glass).
+    pub fn light_sampling_entry_nee(&self) -> EntryNee {
+        match (self.takes_light_samples(), self.has_vertex_head()) {
+            (true, true) => EntryNee::PickedVertex,
+            (true, false) => EntryNee::FirstVertex,
+            (false, _) => EntryNee::Off,
+        }
+    }
 }
 
 /// All estimators of a scene and which instance uses which.

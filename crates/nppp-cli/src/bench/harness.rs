@@ -428,11 +428,12 @@ fn entry_nee_of(e: &Estimators) -> EntryNee {
     let mut lit = e
         .list
         .iter()
-        .filter(|est| est.takes_light_samples())
+        .map(|est| est.light_sampling_entry_nee())
+        .filter(|&nee| nee != EntryNee::Off)
         .peekable();
     if lit.peek().is_none() {
         EntryNee::Off
-    } else if lit.all(|est| est.has_vertex_head()) {
+    } else if lit.all(|nee| nee == EntryNee::PickedVertex) {
         EntryNee::PickedVertex
     } else {
         EntryNee::FirstVertex

@@ -457,11 +457,7 @@ pub fn label(c: Option<Choice>) -> String {
 /// its file's vertex head returns, or else at the first vertex found on the
 /// real mesh; without on delta lobes (smooth glass).
 fn candidates(est: &crate::estimator::Estimator, opts: &PilotOptions) -> Vec<Choice> {
-    let entry_nee = match (est.takes_light_samples(), est.has_vertex_head()) {
-        (true, true) => EntryNee::PickedVertex,
-        (true, false) => EntryNee::FirstVertex,
-        (false, _) => EntryNee::Off,
-    };
+    let entry_nee = est.light_sampling_entry_nee();
     let min_p = if est.medium.is_some() {
         opts.min_p_medium
     } else {
