@@ -788,9 +788,10 @@ fn estimator_warnings(st: &nppp_render::estimator::EstimatorStats) -> Vec<String
     let share = |n: u64| n as f64 / st.entries as f64;
     if share(u64::from(st.repairs.clamped)) > SUSPICIOUS_REPAIR_SHARE {
         w.push(format!(
-            "{} of {} estimator exits ({:.0}%) had a throughput above 1 and were clamped: the \
-             estimator is undertrained or was not made for this object; the image is probably \
-             too bright or too dark there. Train longer, or check it with `nppp info FILE`",
+            "{} of {} estimator exits ({:.0}%) had a throughput or radiance beyond what the object \
+             can return and were clamped: the estimator is undertrained or was not made for this \
+             object; the image is probably too bright or too dark there. Train longer, or check \
+             it with `nppp info FILE`",
             st.repairs.clamped,
             st.entries,
             100.0 * share(u64::from(st.repairs.clamped))

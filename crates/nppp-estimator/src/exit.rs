@@ -54,9 +54,45 @@ pub const EXIT_THROUGHPUT_BOUND: f32 = 1.0;
 /// 28% of cornell-jade's network exits, and the knot, darker.
 pub const EXIT_THROUGHPUT_BOUND_MEDIUM: f32 = 3.0;
 
+/// Decoded exit radiance beyond its bound that still counts as rounding,
+/// not as a broken decoder (the radiance features' standard deviation is
+/// floored at 1e-3, so a decoder trained on zeros stays far below this).
+pub const EXIT_RADIANCE_TOLERANCE: f32 = 1e-3;
+
 /// The throughput bound of an object with or without a medium inside.
 pub fn exit_throughput_bound(has_medium: bool) -> f32 {
     if has_medium { EXIT_THROUGHPUT_BOUND_MEDIUM } else { EXIT_THROUGHPUT_BOUND }
+}
+
+/// The most a decoded exit of one object carries per channel; whoever knows
+/// the object's material sets it (the `.nppp` file does not record it).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExitBounds {
+    /// See [`exit_throughput_bound`].
+    pub throughput: f32,
+    /// Radiance gathered inside: 0 for every object but an emitter, whose
+    /// walks end at its surface with its own radiance (at most its largest
+    /// channel). A decoder that returns more is broken or forged, and its
+    /// e^80 would otherwise reach the image.
+    pub radiance: f32,
+}
+
+impl ExitBounds {
+    /// A non-emitting surface (the default).
+    pub const SURFACE: Self = Self { throughput: EXIT_THROUGHPUT_BOUND, radiance: 0.0 };
+
+    /// An object with or without a medium inside that emits `emitted` at most
+    /// per channel (0 for anything but an emitter).
+    pub fn new(has_medium: bool, emitted: f32) -> Self {
+        let radiance = if emitted.is_finite() { emitted.max(0.0) } else { 0.0 };
+        Self { throughput: exit_throughput_bound(has_medium), radiance }
+    }
+}
+
+impl Default for ExitBounds {
+    fn default() -> Self {
+        Self::SURFACE
+    }
 }
 
 /// Counts of decoder outputs that had to be repaired; the renderer reports them.
@@ -66,7 +102,8 @@ pub struct DecodeRepairs {
     pub degenerate: u32,
     /// Direction pointed into the sphere and was reflected to point out.
     pub inward: u32,
-    /// Throughput or radiance out of range (negative, non-finite) and clamped.
+    /// Throughput or radiance out of range (negative, non-finite, above the
+    /// object's [`ExitBounds`]) and clamped.
     pub clamped: u32,
     /// Picked vertices (the vertex head's) that needed a repair.
     pub vertices: u32,
@@ -106,33 +143,35 @@ impl ExitTransform {
 
     /// Inverts `encode`; repairs what a network may get wrong (unnormalized
     /// vectors, inward directions, negative or non-finite values, a
-    /// throughput above `throughput_bound`, see [`exit_throughput_bound`])
-    /// and counts it.
-    pub fn decode(&self, f: &[f32; EXIT_FEATURES], max_bounces: u32, throughput_bound: f32, repairs: &mut DecodeRepairs) -> Exit {
+    /// throughput or radiance above `bounds`) and counts it, each kind once
+    /// per exit.
+    pub fn decode(&self, f: &[f32; EXIT_FEATURES], max_bounces: u32, bounds: ExitBounds, repairs: &mut DecodeRepairs) -> Exit {
         let mut raw = [0.0f32; EXIT_FEATURES];
         for i in 0..EXIT_FEATURES {
             raw[i] = f[i] * self.std[i] + self.mean[i];
         }
-        let position = match safe_normalize(Vec3::new(raw[0], raw[1], raw[2])) {
-            Some(p) => p,
-            None => {
-                repairs.degenerate += 1;
-                Vec3::Z
-            }
-        };
-        let mut direction = match safe_normalize(Vec3::new(raw[3], raw[4], raw[5])) {
-            Some(d) => d,
-            None => {
-                repairs.degenerate += 1;
-                position
-            }
-        };
+        // Each repair kind is counted once per exit, so that the renderer's
+        // shares of repaired exits stay shares.
+        let mut degenerate = false;
+        let position = safe_normalize(Vec3::new(raw[0], raw[1], raw[2])).unwrap_or_else(|| {
+            degenerate = true;
+            Vec3::Z
+        });
+        let mut direction = safe_normalize(Vec3::new(raw[3], raw[4], raw[5])).unwrap_or_else(|| {
+            degenerate = true;
+            position
+        });
         // An exit must leave the sphere: reflect an inward direction about the
         // tangent plane rather than dropping the sample (that would bias energy).
         let c = direction.dot(position);
         if c < 0.0 {
-            repairs.inward += 1;
+            if !degenerate {
+                repairs.inward += 1;
+            }
             direction = (direction - 2.0 * c * position).normalize();
+        }
+        if degenerate {
+            repairs.degenerate += 1;
         }
         let mut clamped = false;
         let mut unlog = |y: f32| -> f32 {
@@ -156,10 +195,16 @@ impl ExitTransform {
         let b = unlog(raw[12]).round();
         // More than the material can return is a broken or forged network,
         // and would brighten the image without bound.
-        if throughput.max_element() > 1.01 * throughput_bound {
+        if throughput.max_element() > 1.01 * bounds.throughput {
             clamped = true;
         }
-        let throughput = throughput.min(Vec3::splat(throughput_bound));
+        let throughput = throughput.min(Vec3::splat(bounds.throughput));
+        // Likewise radiance: a non-emitting object's data holds zeros, and a
+        // decoder trained on them returns a few 1e-5 at most.
+        if radiance.max_element() > 1.01 * bounds.radiance + EXIT_RADIANCE_TOLERANCE {
+            clamped = true;
+        }
+        let radiance = radiance.min(Vec3::splat(bounds.radiance));
         if clamped {
             repairs.clamped += 1;
         }
@@ -238,7 +283,8 @@ mod tests {
             let e = Exit { position: p, direction: d, throughput: Vec3::splat(t), radiance: Vec3::new(r, 0.0, r * 0.5), bounces: b };
             let tr = ExitTransform { mean: [0.1; EXIT_FEATURES], std: [0.7; EXIT_FEATURES] };
             let mut rep = DecodeRepairs::default();
-            let back = tr.decode(&tr.encode(&e), 1000, EXIT_THROUGHPUT_BOUND, &mut rep);
+            let bounds = ExitBounds::new(false, 100.0);
+            let back = tr.decode(&tr.encode(&e), 1000, bounds, &mut rep);
             prop_assert_eq!(rep, DecodeRepairs::default());
             prop_assert!(back.position.distance(p) < 1e-4);
             prop_assert!(back.direction.distance(d) < 1e-4);
@@ -251,14 +297,16 @@ mod tests {
         fn decode_never_returns_invalid(f in proptest::array::uniform13(prop_oneof![-1e30f32..1e30, Just(f32::NAN), Just(f32::INFINITY), Just(0.0f32)])) {
             let tr = ExitTransform::default();
             let mut rep = DecodeRepairs::default();
-            let e = tr.decode(&f, 64, EXIT_THROUGHPUT_BOUND, &mut rep);
+            let e = tr.decode(&f, 64, ExitBounds::new(false, 100.0), &mut rep);
             prop_assert!((e.position.length() - 1.0).abs() < 1e-4);
             prop_assert!((e.direction.length() - 1.0).abs() < 1e-4);
             prop_assert!(e.direction.dot(e.position) >= -1e-4);
             prop_assert!(e.throughput.is_finite() && e.throughput.min_element() >= 0.0);
             prop_assert!(e.throughput.max_element() <= 1.0);
             prop_assert!(e.radiance.is_finite() && e.radiance.min_element() >= 0.0);
+            prop_assert!(e.radiance.max_element() <= 100.0);
             prop_assert!(e.bounces <= 64);
+            prop_assert!(rep.degenerate + rep.inward <= 1 && rep.clamped <= 1, "{:?}", rep);
         }
     }
 
@@ -267,18 +315,46 @@ mod tests {
         let tr = ExitTransform::default();
         let e = Exit { position: Vec3::Z, direction: Vec3::Z, throughput: Vec3::new(5.0, 0.5, 1.0), radiance: Vec3::ZERO, bounces: 1 };
         let mut rep = DecodeRepairs::default();
-        let back = tr.decode(&tr.encode(&e), 8, EXIT_THROUGHPUT_BOUND, &mut rep);
+        let back = tr.decode(&tr.encode(&e), 8, ExitBounds::SURFACE, &mut rep);
         assert_eq!(rep.clamped, 1);
         assert!((back.throughput - Vec3::new(1.0, 0.5, 1.0)).abs().max_element() < 1e-5);
         // A translucent object's exits may carry up to 3 per channel.
         let mut rep = DecodeRepairs::default();
         let e = Exit { throughput: Vec3::new(2.5, 0.5, 1.2), ..e };
-        let back = tr.decode(&tr.encode(&e), 8, exit_throughput_bound(true), &mut rep);
+        let back = tr.decode(&tr.encode(&e), 8, ExitBounds::new(true, 0.0), &mut rep);
         assert_eq!(rep.clamped, 0);
         assert!((back.throughput - e.throughput).abs().max_element() < 1e-5);
         let e = Exit { throughput: Vec3::new(5.0, 0.5, 1.0), ..e };
-        let back = tr.decode(&tr.encode(&e), 8, exit_throughput_bound(true), &mut rep);
+        let back = tr.decode(&tr.encode(&e), 8, ExitBounds::new(true, 0.0), &mut rep);
         assert_eq!(rep.clamped, 1);
         assert!((back.throughput.x - EXIT_THROUGHPUT_BOUND_MEDIUM).abs() < 1e-5);
+    }
+
+    /// A forged decoder's radiance (found by an adversarial pass: biases that
+    /// decode to e^80 rendered pixels of 1e34 with no repair reported).
+    #[test]
+    fn radiance_of_a_non_emitter_is_zeroed_and_counted() {
+        let tr = ExitTransform::default();
+        let mut f = [0.0f32; EXIT_FEATURES];
+        f[2] = 1.0;
+        f[5] = 1.0;
+        f[9..12].copy_from_slice(&[80.0, 80.0, 80.0]);
+        let mut rep = DecodeRepairs::default();
+        let e = tr.decode(&f, 8, ExitBounds::SURFACE, &mut rep);
+        assert_eq!(e.radiance, Vec3::ZERO);
+        assert_eq!(rep, DecodeRepairs { clamped: 1, ..Default::default() });
+        // An emitter's exits keep up to its radiance.
+        let mut rep = DecodeRepairs::default();
+        let e = tr.decode(&f, 8, ExitBounds::new(false, 17.0), &mut rep);
+        assert_eq!(e.radiance, Vec3::splat(17.0));
+        assert_eq!(rep.clamped, 1);
+        f[9..12].copy_from_slice(&[2.0f32.ln_1p(), 0.0, 1e-6]);
+        let mut rep = DecodeRepairs::default();
+        let e = tr.decode(&f, 8, ExitBounds::new(false, 17.0), &mut rep);
+        assert!((e.radiance - Vec3::new(2.0, 0.0, 1e-6)).abs().max_element() < 1e-5);
+        assert_eq!(rep, DecodeRepairs::default());
+        // A trained non-emitter's decoder returns rounding, not a repair.
+        let e = tr.decode(&f.map(|x| x.min(1e-5)), 8, ExitBounds::SURFACE, &mut rep);
+        assert_eq!((e.radiance, rep.clamped), (Vec3::ZERO, 0));
     }
 }

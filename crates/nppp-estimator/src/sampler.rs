@@ -26,10 +26,10 @@ pub struct EstimatorSampler {
     vertex_cpu: Option<CpuDecoder>,
     latent_dim: usize,
     noise_dim: usize,
-    /// The most throughput per channel a decoded exit keeps
-    /// ([`crate::exit_throughput_bound`]): the file does not record the
-    /// material, so whoever knows it sets this (1, a surface, by default).
-    pub throughput_bound: f32,
+    /// The most throughput and radiance per channel a decoded exit keeps:
+    /// the file does not record the material, so whoever knows it sets this
+    /// (a non-emitting surface by default).
+    pub bounds: crate::ExitBounds,
 }
 
 /// Reusable buffers of [`EstimatorSampler::sample_batch`].
@@ -68,7 +68,7 @@ impl EstimatorSampler {
         let noise_dim = baked.meta.noise_dim as usize;
         let cpu = CpuDecoder::new(&baked.decoder);
         let vertex_cpu = baked.vertex.as_ref().map(|v| CpuDecoder::new(&v.decoder));
-        Ok(Self { baked, cpu, backend: None, vertex_cpu, latent_dim, noise_dim, throughput_bound: crate::EXIT_THROUGHPUT_BOUND })
+        Ok(Self { baked, cpu, backend: None, vertex_cpu, latent_dim, noise_dim, bounds: crate::ExitBounds::SURFACE })
     }
 
     /// Runs the decoder on `backend` instead of the CPU decoder (which still
@@ -188,7 +188,7 @@ impl EstimatorSampler {
         batch.exits.clear();
         batch.exits.extend(batch.features.chunks_exact(EXIT_FEATURES).map(|f| {
             let f: &[f32; EXIT_FEATURES] = f.try_into().unwrap_or(&[0.0; EXIT_FEATURES]);
-            self.baked.transform.decode(f, max_b, self.throughput_bound, repairs)
+            self.baked.transform.decode(f, max_b, self.bounds, repairs)
         }));
         DecodedBatch { exits: &batch.exits, fell_back }
     }
@@ -354,7 +354,7 @@ mod tests {
         let mut f = [0.0f32; EXIT_FEATURES];
         est.decoder.forward_batch(&input, &mut f);
         let mut rep2 = DecodeRepairs::default();
-        let want = est.transform.decode(&f, 64, crate::EXIT_THROUGHPUT_BOUND, &mut rep2);
+        let want = est.transform.decode(&f, 64, crate::ExitBounds::SURFACE, &mut rep2);
         assert!(e.position.distance(want.position) < 1e-5 && e.direction.distance(want.direction) < 1e-5, "{e:?} {want:?}");
         assert!((e.throughput - want.throughput).abs().max_element() <= 1e-4 * (1.0 + want.throughput.max_element()));
         assert_eq!(e.bounces, want.bounces);
@@ -412,7 +412,7 @@ mod tests {
         let got = s.sample_batch(&mut batch, 2, fill, &mut rep);
         assert!(!got.fell_back);
         let mut rep2 = DecodeRepairs::default();
-        let zero = s.baked().transform.decode(&[0.0; EXIT_FEATURES], 64, s.throughput_bound, &mut rep2);
+        let zero = s.baked().transform.decode(&[0.0; EXIT_FEATURES], 64, s.bounds, &mut rep2);
         assert_eq!(got.exits, [zero, zero]);
     }
 

@@ -528,7 +528,7 @@ fn eval_pair(
     unbaked.vertex_transform = vt.cloned();
     let mu = evaluate(&mut unbaked, heldout, k, tr, vt, &opts)?;
     let mut sampler = EstimatorSampler::try_new(baked)?;
-    sampler.throughput_bound = loaded.meta.dataset.exit_throughput_bound();
+    sampler.bounds = loaded.meta.dataset.exit_bounds();
     let mut bs = BakedSource::new(sampler);
     let mb = evaluate(&mut bs, heldout, k, tr, vt, &opts)?;
     Ok((mu, mb))

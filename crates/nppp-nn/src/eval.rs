@@ -73,8 +73,8 @@ pub struct BurnEstimator {
     /// The vertex head's transform (with a vertex head).
     pub vertex_transform: Option<VertexTransform>,
     pub max_bounces: u32,
-    /// See `nppp_estimator::exit_throughput_bound`.
-    pub throughput_bound: f32,
+    /// See `nppp_estimator::ExitBounds`.
+    pub bounds: nppp_estimator::ExitBounds,
     pub noise_dim: usize,
     pub repairs: DecodeRepairs,
 }
@@ -102,7 +102,7 @@ impl BurnEstimator {
             transform,
             vertex_transform: None,
             max_bounces: dataset.max_internal_bounces,
-            throughput_bound: dataset.exit_throughput_bound(),
+            bounds: dataset.exit_bounds(),
             noise_dim,
             repairs: DecodeRepairs::default(),
         })
@@ -171,7 +171,7 @@ impl ExitSource for BurnEstimator {
                 out.push(self.transform.decode(
                     f,
                     self.max_bounces,
-                    self.throughput_bound,
+                    self.bounds,
                     &mut self.repairs,
                 ));
             }

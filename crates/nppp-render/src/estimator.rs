@@ -679,8 +679,11 @@ impl Estimators {
                         });
                     }
                     let mut sampler = EstimatorSampler::try_new(baked).map_err(file_err)?;
-                    sampler.throughput_bound =
-                        nppp_estimator::exit_throughput_bound(medium.is_some());
+                    let emitted = match surface {
+                        SurfaceKind::Emitter { radiance } => radiance.max_element(),
+                        SurfaceKind::Scatter(_) => 0.0,
+                    };
+                    sampler.bounds = nppp_estimator::ExitBounds::new(medium.is_some(), emitted);
                     let model = if mode == EstimatorMode::CostFloor {
                         EstimatorModel::CostFloor { sampler }
                     } else {

@@ -83,9 +83,16 @@ impl DatasetHeader {
         serde_json::from_str::<serde_json::Value>(&self.material_json).is_ok_and(|m| m["type"] == "translucent")
     }
 
-    /// The most throughput per channel this object's exits can carry.
-    pub fn exit_throughput_bound(&self) -> f32 {
-        crate::exit::exit_throughput_bound(self.has_medium())
+    /// The most throughput and radiance per channel this object's exits can
+    /// carry (radiance only for an emitter, read from the recorded material).
+    pub fn exit_bounds(&self) -> crate::ExitBounds {
+        let material = serde_json::from_str::<serde_json::Value>(&self.material_json).unwrap_or_default();
+        let emitted = if material["type"] == "emitter" {
+            material["radiance"].as_array().map_or(0.0, |c| c.iter().filter_map(|x| x.as_f64()).fold(0.0, f64::max))
+        } else {
+            0.0
+        };
+        crate::ExitBounds::new(self.has_medium(), emitted as f32)
     }
 }
 

@@ -2,15 +2,18 @@ use super::*;
 use nppp_geom::SampleRng;
 
 #[test]
-fn the_recorded_material_tells_whether_there_is_a_medium() {
+fn the_recorded_material_tells_the_exits_bounds() {
     let mut h = header(4);
     assert!(!h.has_medium());
-    assert_eq!(h.exit_throughput_bound(), crate::EXIT_THROUGHPUT_BOUND);
+    assert_eq!(h.exit_bounds(), crate::ExitBounds::SURFACE);
     h.material_json = r#"{"type": "translucent", "ior": 1.6, "sigma_s": [9, 9, 9], "sigma_a": [0, 0, 0], "g": 0}"#.into();
     assert!(h.has_medium());
-    assert_eq!(h.exit_throughput_bound(), crate::EXIT_THROUGHPUT_BOUND_MEDIUM);
+    assert_eq!(h.exit_bounds(), crate::ExitBounds { throughput: crate::EXIT_THROUGHPUT_BOUND_MEDIUM, radiance: 0.0 });
+    h.material_json = r#"{"type": "emitter", "radiance": [17, 12, 4]}"#.into();
+    assert_eq!(h.exit_bounds(), crate::ExitBounds::new(false, 17.0));
     h.material_json = "{}".into();
     assert!(!h.has_medium());
+    assert_eq!(h.exit_bounds(), crate::ExitBounds::SURFACE);
 }
 
 fn header(k: u32) -> DatasetHeader {
