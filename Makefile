@@ -82,7 +82,7 @@ $(NPPP): build
 
 data: $(DATA)
 $(DATA): $(OBJECT_SCENE) | build
-	$(NPPP) gen --scene $(OBJECT_SCENE) --instance $(OBJECT_INSTANCE) $(GEN_FLAGS) --out $@
+	$(NPPP) gen --scene $(OBJECT_SCENE) --instance $(OBJECT_INSTANCE) $(GEN_FLAGS) --overwrite --out $@
 
 train: $(MODEL)/checkpoint/model.bpk
 $(MODEL)/checkpoint/model.bpk: $(DATA) | build

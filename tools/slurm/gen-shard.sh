@@ -23,4 +23,4 @@ parts="$1"
 shift
 read -r index count < <(array_task)
 mkdir -p "$parts"
-exec "$(nppp_bin)" gen "$@" --quiet --shard "$index/$count" --out "$parts/part-$index.nppd"
+exec "$(nppp_bin)" gen "$@" --quiet --overwrite --shard "$index/$count" --out "$parts/part-$index.nppd"

@@ -82,6 +82,11 @@ pub struct GenArgs {
     /// Output data file (written to a temporary file, renamed when complete).
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace --out if it exists. Without it gen refuses an existing file:
+    /// training data can be hours of tracing, and a model's bake reads its
+    /// held-out rays from it.
+    #[arg(long)]
+    pub overwrite: bool,
     /// Trace only shard I of K (I from 0) of the --rays input rays, in whole
     /// chunks of 4096 rays: a file of its own that `nppp merge` joins with the
     /// other shards into the file one run writes, byte for byte (tools/slurm
@@ -99,6 +104,12 @@ pub struct GenArgs {
     pub quiet: bool,
 }
 
+/// The most exits (`--rays` x `--k`, hits or not) one run may plan: 2^38,
+/// about 2.7 TB at the 10 bytes an exit takes compressed; 4,000 times the
+/// default recipe. More cannot be written anywhere, and was accepted and
+/// traced until the disk filled.
+const MAX_PLANNED_EXITS: u64 = 1 << 38;
+
 pub fn run(a: &GenArgs) -> Result<()> {
     ensure!(a.rays >= 1, "--rays must be at least 1");
     ensure!(
@@ -109,6 +120,14 @@ pub fn run(a: &GenArgs) -> Result<()> {
     ensure!(
         a.max_internal_bounces != Some(0),
         "--max-internal-bounces must be at least 1"
+    );
+    ensure!(
+        a.rays.saturating_mul(a.k as u64) <= MAX_PLANNED_EXITS,
+        "--rays {} x --k {} plans {:.3e} exits, more than any disk holds (about 10 bytes each); \
+         at most {MAX_PLANNED_EXITS:.3e} (the default recipe plans 6.4e7)",
+        a.rays,
+        a.k,
+        a.rays as f64 * a.k as f64
     );
     ensure!(
         !a.out.is_dir(),
@@ -122,6 +141,12 @@ pub fn run(a: &GenArgs) -> Result<()> {
         a.out.display()
     );
     nppp_files::check_writable(&a.out).map_err(|e| anyhow!("--out {}: {e}", a.out.display()))?;
+    ensure!(
+        a.overwrite || !a.out.exists(),
+        "--out {}: exists; training data can be hours of tracing, so gen keeps it: pass \
+         --overwrite to replace it, or name another file",
+        a.out.display()
+    );
     let shard_rays = match a.shard {
         Some(sh) => Some(
             nppp_estimator::shard::shard_rays(

@@ -141,8 +141,21 @@ fn stop_training_on_interrupt() -> Result<()> {
             nppp_nn::request_stop();
         } else {
             eprintln!("\ninterrupted");
+            nppp_files::remove_pending_temp_files();
             std::process::exit(130);
         }
+    })
+    .map_err(|e| anyhow::anyhow!("cannot install the interrupt handler: {e}"))
+}
+
+/// Ctrl-C or SIGTERM in any other command: the files being written keep
+/// their old contents (every write is atomic) and their temporary files are
+/// removed, then the command exits with status 130.
+fn clean_up_on_interrupt() -> Result<()> {
+    ctrlc::set_handler(|| {
+        eprintln!("\ninterrupted");
+        nppp_files::remove_pending_temp_files();
+        std::process::exit(130);
     })
     .map_err(|e| anyhow::anyhow!("cannot install the interrupt handler: {e}"))
 }
@@ -158,6 +171,9 @@ fn print_summary(r: &impl std::fmt::Display) -> Result<()> {
 }
 
 fn run(cli: Cli) -> Result<()> {
+    if !matches!(cli.command, Command::Train { .. }) {
+        clean_up_on_interrupt()?;
+    }
     match cli.command {
         Command::Render { args, threads } => {
             threads.install()?;

@@ -56,6 +56,11 @@ pub struct MergeArgs {
     /// Render parts: also write an sRGB PNG preview here.
     #[arg(long)]
     pub png: Option<PathBuf>,
+    /// Data parts: replace an existing --out (without it merge refuses to,
+    /// as `nppp gen` does: training data can be hours of tracing). A merged
+    /// image replaces an existing one, as a render does.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 pub fn run(a: &MergeArgs) -> Result<()> {
@@ -100,6 +105,12 @@ pub fn run(a: &MergeArgs) -> Result<()> {
         ensure!(
             a.png.is_none(),
             "--png is for render parts; data parts merge into an .nppd file"
+        );
+        ensure!(
+            a.overwrite || !a.out.exists(),
+            "--out {}: exists; training data can be hours of tracing, so merge keeps it: pass \
+             --overwrite to replace it, or name another file",
+            a.out.display()
         );
         merge_data(a)
     }

@@ -121,13 +121,21 @@ impl TrainingLog {
         self.rows
             .iter()
             .filter_map(|r| Some((r[s]?, r[c]? * scale)))
-            .filter(|(x, y)| x.is_finite() && y.is_finite())
+            .filter(|&(x, y)| plottable(x) && plottable(y))
             .collect()
     }
 
     fn index(&self, name: &str) -> Option<usize> {
         self.columns.iter().position(|c| c == name)
     }
+}
+
+/// Whether a value can be drawn: finite, and far enough from f64's limits
+/// that an axis padded around it (by 1.5x at most) stays finite. An axis
+/// that reached infinity made plotters loop forever (a log with a loss of
+/// 1.7e308 hung `nppp plot-log`).
+pub(crate) fn plottable(v: f64) -> bool {
+    v.is_finite() && (v == 0.0 || (1e-300..=1e300).contains(&v.abs()))
 }
 
 /// The smallest and largest x and y of `points`: (x0, x1, y0, y1), with
@@ -366,6 +374,18 @@ mod tests {
                     o.display()
                 );
             }
+        }
+        // Values near f64's limits are left out: padding the axis around
+        // 1.7e308 reached infinity and plotters never returned.
+        std::fs::write(
+            &csv,
+            "epoch,step,train_loss\n0.1,100,1.7e308\n0.2,200,1.0\n0.3,300,1e-320\n0.4,400,inf\n",
+        )
+        .unwrap();
+        let log = TrainingLog::read(&csv).unwrap();
+        assert_eq!(log.series("train_loss", 1.0), vec![(200.0, 1.0)]);
+        if register_font().is_ok() {
+            assert!(!plot_training_log(&dir, None).unwrap().is_empty());
         }
         std::fs::write(&csv, "a,b\n1,2\n").unwrap();
         let e = TrainingLog::read(&csv).err().unwrap().to_string();

@@ -286,6 +286,94 @@ fn gen_never_writes_over_its_scene_or_mesh() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `nppp gen` and `nppp merge` keep an existing data file unless told
+/// `--overwrite` (an adversarial pass replaced a 383 kB data set by a 3 kB
+/// one with a slip of `--out`), and refuse a plan no disk holds.
+#[test]
+fn gen_and_merge_keep_existing_data_unless_told_to_overwrite() {
+    let dir = scratch("gen-overwrite");
+    let data = dir.join("d.nppd");
+    let gen_into = |out: &Path, rays: &str, extra: &[&str]| {
+        let mut a: Vec<&OsStr> = ["gen", "--mesh", "builtin", "--material", "white", "--k", "2"]
+            .iter()
+            .map(OsStr::new)
+            .collect();
+        a.extend(["--quiet", "--rays", rays, "--out"].into_iter().map(OsStr::new));
+        a.push(out.as_os_str());
+        a.extend(extra.iter().map(OsStr::new));
+        nppp(a)
+    };
+    assert_ok("gen", &gen_into(&data, "64", &[]));
+    let before = std::fs::read(&data).unwrap();
+    let o = gen_into(&data, "32", &[]);
+    assert_error("gen over existing data", &o, &["--out", "exists", "--overwrite"]);
+    assert_eq!(std::fs::read(&data).unwrap(), before);
+    assert_ok("gen --overwrite", &gen_into(&data, "32", &["--overwrite"]));
+    assert_ne!(std::fs::read(&data).unwrap(), before);
+    // merge into an existing .nppd likewise.
+    let shard = dir.join("s0.nppd");
+    assert_ok("gen --shard", &gen_into(&shard, "32", &["--shard", "0/1"]));
+    let merged = std::fs::read(&data).unwrap();
+    let merge = |extra: &[&str]| {
+        let mut a: Vec<&OsStr> = vec!["merge".as_ref(), shard.as_os_str(), "--out".as_ref()];
+        a.push(data.as_os_str());
+        a.extend(extra.iter().map(OsStr::new));
+        nppp(a)
+    };
+    assert_error("merge over existing data", &merge(&[]), &["--out", "exists", "--overwrite"]);
+    assert_eq!(std::fs::read(&data).unwrap(), merged);
+    assert_ok("merge --overwrite", &merge(&["--overwrite"]));
+    // A plan no disk holds is refused before any tracing.
+    let huge = dir.join("huge.nppd");
+    let o = gen_into(&huge, "18446744073709551615", &[]);
+    assert_error("gen --rays u64::MAX", &o, &["--rays", "--k", "exits"]);
+    assert!(!huge.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Ctrl-C or SIGTERM during `nppp gen`: the half-written data's temporary
+/// file is removed (it was left behind, one per run, hidden) and no data
+/// file appears.
+#[test]
+fn an_interrupted_gen_leaves_no_temporary_file() {
+    use std::process::Stdio;
+    let dir = scratch("gen-interrupt");
+    let out = dir.join("x.nppd");
+    for signal in ["INT", "TERM"] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_nppp"))
+            .args(["gen", "--mesh", "builtin", "--material", "white", "--quiet"])
+            .args(["--rays", "100000000", "--out"])
+            .arg(&out)
+            .stderr(Stdio::piped())
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap();
+        // Wait until the temporary file exists: tracing is under way.
+        let listing = || -> Vec<String> {
+            std::fs::read_dir(&dir)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect()
+        };
+        let t0 = std::time::Instant::now();
+        while !listing().iter().any(|n| n.ends_with(".tmp")) {
+            assert!(t0.elapsed().as_secs() < 120, "no temporary file appeared");
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        let killed = Command::new("kill")
+            .args([format!("-{signal}"), child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(killed.success());
+        let o = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(130), "SIG{signal}: {:?}\n{err}", o.status);
+        assert!(err.contains("interrupted"), "SIG{signal}:\n{err}");
+        assert!(listing().is_empty(), "SIG{signal} left {:?}", listing());
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn render_never_writes_over_its_reference() {
     let dir = scratch("render-ref");

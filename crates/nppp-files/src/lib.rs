@@ -6,7 +6,8 @@
 //!   temporary name in the same folder, flushed to disk, then renamed over
 //!   the target. A reader (or a kill at any instant) sees the old file or the
 //!   new one, never a half-written one; a writer dropped before
-//!   [`AtomicFile::commit`] removes its temporary file.
+//!   [`AtomicFile::commit`] removes its temporary file, and a command ended
+//!   by a signal removes every one still open ([`remove_pending_temp_files`]).
 //! - [`ensure_not_input`]: an output path that names one of the command's
 //!   inputs (the same file, under any spelling or hard link) is refused
 //!   before any work, so a slip of the flags cannot overwrite the training
@@ -29,6 +30,37 @@ use std::ffi::OsString;
 use std::fs::File;
 use std::io::{self, BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard};
+
+/// The temporary files this process is writing whose targets are not yet
+/// replaced: what [`remove_pending_temp_files`] deletes when a signal ends
+/// the process, which runs no destructor (an interrupted `nppp gen` left
+/// its half-written data behind, one hidden file per run).
+static PENDING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+fn pending() -> MutexGuard<'static, Vec<PathBuf>> {
+    PENDING.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+fn track(tmp: &Path) {
+    pending().push(tmp.to_path_buf());
+}
+
+fn untrack(tmp: &Path) {
+    let mut list = pending();
+    if let Some(i) = list.iter().rposition(|p| p == tmp) {
+        list.swap_remove(i);
+    }
+}
+
+/// Deletes the temporary file of every write still in progress; for a
+/// signal handler about to end the process (the targets keep their old
+/// contents, as after a kill).
+pub fn remove_pending_temp_files() {
+    for tmp in pending().drain(..) {
+        let _ = std::fs::remove_file(tmp);
+    }
+}
 
 /// The environment variable that names a crash point (tests only).
 pub const CRASH_ENV: &str = "NPPP_CRASH_AT";
@@ -110,6 +142,7 @@ impl AtomicFile {
         }
         let tmp = temp_path(path);
         let file = File::create(&tmp)?;
+        track(&tmp);
         Ok(Self {
             path: path.to_path_buf(),
             tmp,
@@ -140,6 +173,7 @@ impl AtomicFile {
         if result.is_err() {
             let _ = std::fs::remove_file(&self.tmp);
         }
+        untrack(&self.tmp);
         result
     }
 }
@@ -171,6 +205,7 @@ impl Drop for AtomicFile {
     fn drop(&mut self) {
         if self.file.take().is_some() {
             let _ = std::fs::remove_file(&self.tmp);
+            untrack(&self.tmp);
         }
     }
 }
@@ -197,6 +232,7 @@ pub fn write_atomic_via_path<E: std::fmt::Display>(
         ));
     }
     let tmp = temp_path(path);
+    track(&tmp);
     let result = (|| {
         write(&tmp).map_err(|e| io::Error::other(e.to_string()))?;
         File::open(&tmp)?.sync_all()?;
@@ -208,6 +244,7 @@ pub fn write_atomic_via_path<E: std::fmt::Display>(
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
+    untrack(&tmp);
     result
 }
 

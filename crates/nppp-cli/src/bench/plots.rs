@@ -168,7 +168,12 @@ fn curves(r: &SceneResult) -> Vec<Curve> {
             let (color, width) = curve_style(c.kind, c.m, c.p, mmax);
             let mut points: Vec<(f64, f64)> = cells(r, ci, &ladder)
                 .iter()
-                .filter(|x| x.seconds > 0.0 && x.rel_mse > 0.0)
+                .filter(|x| {
+                    x.seconds > 0.0
+                        && x.rel_mse > 0.0
+                        && crate::plot::plottable(x.seconds)
+                        && crate::plot::plottable(x.rel_mse)
+                })
                 .map(|x| (x.seconds, x.rel_mse))
                 .collect();
             points.sort_by(|a, b| a.0.total_cmp(&b.0));
