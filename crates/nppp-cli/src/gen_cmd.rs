@@ -141,12 +141,6 @@ pub fn run(a: &GenArgs) -> Result<()> {
         a.out.display()
     );
     nppp_files::check_writable(&a.out).map_err(|e| anyhow!("--out {}: {e}", a.out.display()))?;
-    ensure!(
-        a.overwrite || !a.out.exists(),
-        "--out {}: exists; training data can be hours of tracing, so gen keeps it: pass \
-         --overwrite to replace it, or name another file",
-        a.out.display()
-    );
     let shard_rays = match a.shard {
         Some(sh) => Some(
             nppp_estimator::shard::shard_rays(
@@ -167,6 +161,13 @@ pub fn run(a: &GenArgs) -> Result<()> {
         .map(|(w, p)| (w.as_str(), p.as_path()))
         .collect();
     nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
+    // After that check, whose message says more when --out is an input.
+    ensure!(
+        a.overwrite || !a.out.exists(),
+        "--out {}: exists; training data can be hours of tracing, so gen keeps it: pass \
+         --overwrite to replace it, or name another file",
+        a.out.display()
+    );
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("--out {}: cannot create its folder", a.out.display()))?;

@@ -110,23 +110,23 @@ pub struct TrainArgs {
     #[arg(long)]
     pub steps_per_epoch: Option<usize>,
     /// Held-out hit rays scored at the end of every epoch.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one)]
     pub eval_rays: Option<usize>,
     /// Latent size (z); the baked grid stores this many channels.
-    #[arg(long)]
+    #[arg(long, value_parser = network_size)]
     pub latent_dim: Option<usize>,
     /// Standard normals per decoder row (r); an entry draws this many per
     /// decoder row in the renderer.
-    #[arg(long)]
+    #[arg(long, value_parser = network_size)]
     pub noise_dim: Option<usize>,
     /// Encoder hidden width.
-    #[arg(long)]
+    #[arg(long, value_parser = network_size)]
     pub encoder_width: Option<usize>,
     /// Decoder hidden width.
-    #[arg(long)]
+    #[arg(long, value_parser = network_size)]
     pub decoder_width: Option<usize>,
     /// Mask network hidden width.
-    #[arg(long)]
+    #[arg(long, value_parser = network_size)]
     pub mask_width: Option<usize>,
     /// Write a row of training losses (averaged since the previous row),
     /// learning rate and time per step to log.csv every this many steps
@@ -140,6 +140,34 @@ pub struct TrainArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// A network size flag: what `ModelConfig::validate` accepts, said with the
+/// flag's name (it named the config key) before any data is read.
+fn network_size(s: &str) -> Result<usize, String> {
+    let v: usize = s
+        .parse()
+        .map_err(|_| format!("\"{s}\" is not a whole number"))?;
+    if (1..=8192).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!(
+            "{v} is out of range: a layer or latent size is 1 to 8192"
+        ))
+    }
+}
+
+/// A count that 0 would make meaningless (no held-out rays scored reads as a
+/// perfect score of 0).
+fn at_least_one(s: &str) -> Result<usize, String> {
+    let v: usize = s
+        .parse()
+        .map_err(|_| format!("\"{s}\" is not a whole number"))?;
+    if v >= 1 {
+        Ok(v)
+    } else {
+        Err("must be at least 1".into())
+    }
 }
 
 impl TrainArgs {

@@ -546,6 +546,10 @@ const SCENES: &[(&str, &[&str])] = &[
         &["meshes.block.obj", "obj_empty.obj", "no faces"],
     ),
     (
+        "obj_zero_area.json",
+        &["meshes.block.obj", "obj_zero_area.obj", "zero area"],
+    ),
+    (
         "obj_vertex_1e39.json",
         &[
             "meshes.block.obj",

@@ -294,11 +294,23 @@ fn gen_and_merge_keep_existing_data_unless_told_to_overwrite() {
     let dir = scratch("gen-overwrite");
     let data = dir.join("d.nppd");
     let gen_into = |out: &Path, rays: &str, extra: &[&str]| {
-        let mut a: Vec<&OsStr> = ["gen", "--mesh", "builtin", "--material", "white", "--k", "2"]
-            .iter()
-            .map(OsStr::new)
-            .collect();
-        a.extend(["--quiet", "--rays", rays, "--out"].into_iter().map(OsStr::new));
+        let mut a: Vec<&OsStr> = [
+            "gen",
+            "--mesh",
+            "builtin",
+            "--material",
+            "white",
+            "--k",
+            "2",
+        ]
+        .iter()
+        .map(OsStr::new)
+        .collect();
+        a.extend(
+            ["--quiet", "--rays", rays, "--out"]
+                .into_iter()
+                .map(OsStr::new),
+        );
         a.push(out.as_os_str());
         a.extend(extra.iter().map(OsStr::new));
         nppp(a)
@@ -306,7 +318,11 @@ fn gen_and_merge_keep_existing_data_unless_told_to_overwrite() {
     assert_ok("gen", &gen_into(&data, "64", &[]));
     let before = std::fs::read(&data).unwrap();
     let o = gen_into(&data, "32", &[]);
-    assert_error("gen over existing data", &o, &["--out", "exists", "--overwrite"]);
+    assert_error(
+        "gen over existing data",
+        &o,
+        &["--out", "exists", "--overwrite"],
+    );
     assert_eq!(std::fs::read(&data).unwrap(), before);
     assert_ok("gen --overwrite", &gen_into(&data, "32", &["--overwrite"]));
     assert_ne!(std::fs::read(&data).unwrap(), before);
@@ -320,7 +336,11 @@ fn gen_and_merge_keep_existing_data_unless_told_to_overwrite() {
         a.extend(extra.iter().map(OsStr::new));
         nppp(a)
     };
-    assert_error("merge over existing data", &merge(&[]), &["--out", "exists", "--overwrite"]);
+    assert_error(
+        "merge over existing data",
+        &merge(&[]),
+        &["--out", "exists", "--overwrite"],
+    );
     assert_eq!(std::fs::read(&data).unwrap(), merged);
     assert_ok("merge --overwrite", &merge(&["--overwrite"]));
     // A plan no disk holds is refused before any tracing.
@@ -340,7 +360,7 @@ fn an_interrupted_gen_leaves_no_temporary_file() {
     let dir = scratch("gen-interrupt");
     let out = dir.join("x.nppd");
     for signal in ["INT", "TERM"] {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_nppp"))
+        let child = Command::new(env!("CARGO_BIN_EXE_nppp"))
             .args(["gen", "--mesh", "builtin", "--material", "white", "--quiet"])
             .args(["--rays", "100000000", "--out"])
             .arg(&out)
@@ -367,7 +387,12 @@ fn an_interrupted_gen_leaves_no_temporary_file() {
         assert!(killed.success());
         let o = child.wait_with_output().unwrap();
         let err = String::from_utf8_lossy(&o.stderr);
-        assert_eq!(o.status.code(), Some(130), "SIG{signal}: {:?}\n{err}", o.status);
+        assert_eq!(
+            o.status.code(),
+            Some(130),
+            "SIG{signal}: {:?}\n{err}",
+            o.status
+        );
         assert!(err.contains("interrupted"), "SIG{signal}:\n{err}");
         assert!(listing().is_empty(), "SIG{signal} left {:?}", listing());
     }

@@ -28,7 +28,8 @@ pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta, VertexHead};
 pub use dataset::{DatasetError, DatasetHeader, DatasetReader, DatasetSummary, DatasetWriter, RayRecord, WriterOptions};
 pub use decoder::{CpuDecoder, ExitDecoder};
 pub use exit::{
-    DecodeRepairs, EXIT_FEATURES, EXIT_THROUGHPUT_BOUND, EXIT_THROUGHPUT_BOUND_MEDIUM, Exit, ExitBounds, ExitTransform, exit_throughput_bound,
+    DecodeRepairs, EXIT_FEATURES, EXIT_THROUGHPUT_BOUND, EXIT_THROUGHPUT_BOUND_MEDIUM, Exit, ExitBounds, ExitTransform,
+    exit_throughput_bound,
 };
 pub use grid::{QuantizedGrid, node_coords, node_count};
 pub use mlp::{Dense, Mlp};

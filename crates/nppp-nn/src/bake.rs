@@ -477,6 +477,13 @@ pub fn max_node_error_steps(baked: &BakedEstimator, latent: &[f32]) -> f64 {
 pub fn load_heldout(loaded: &LoadedModel, data: Option<&Path>, quiet: bool) -> Result<DataSplit> {
     let path = data.unwrap_or(&loaded.meta.data_path);
     let every = loaded.train_config.holdout_every;
+    if every == 0 {
+        bail!(
+            "{}: the model's train_config.json holds out no rays (holdout_every 0), so there is \
+             nothing to score it on: bake with --no-eval",
+            loaded.dir.display()
+        );
+    }
     let (header, rays) =
         load_dataset_where(path, quiet, 1.0 / every as f64, |i| is_heldout(i, every))
             .with_context(|| {
@@ -485,16 +492,31 @@ pub fn load_heldout(loaded: &LoadedModel, data: Option<&Path>, quiet: bool) -> R
                     path.display()
                 )
             })?;
+    if rays.is_empty() {
+        bail!(
+            "{}: none of its rays is held out (every {every}th is, and the file has fewer): it \
+             is not the data the model was trained on; name that with --data, or bake with \
+             --no-eval",
+            path.display()
+        );
+    }
     if header.mesh_hash != loaded.meta.dataset.mesh_hash
         || header.material_hash != loaded.meta.dataset.material_hash
     {
+        // The names alone may agree (an edited mesh keeps its name): say the hashes.
         bail!(
-            "{} was generated for {} / {}, the model for {} / {}",
+            "{} was generated for mesh {} (hash {:016x}) / material {} (hash {:016x}), the model \
+             for mesh {} (hash {:016x}) / material {} (hash {:016x}): bake with the data the \
+             model was trained on, or --no-eval",
             path.display(),
             header.mesh_name,
+            header.mesh_hash,
             header.material_name,
+            header.material_hash,
             loaded.meta.dataset.mesh_name,
-            loaded.meta.dataset.material_name
+            loaded.meta.dataset.mesh_hash,
+            loaded.meta.dataset.material_name,
+            loaded.meta.dataset.material_hash
         );
     }
     // The picked vertices are scored when both the model and the data have them.

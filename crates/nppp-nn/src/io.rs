@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use indicatif::ProgressBar;
 use nppp_estimator::{DatasetHeader, DatasetReader, ExitTransform, VertexTransform};
 use nppp_geom::BoundingSphere;
@@ -144,6 +144,8 @@ fn check_claims(path: &Path, reader: &DatasetReader, share: f64) -> Result<()> {
 /// Reads the rays of a data file whose index passes `keep` (streaming, so
 /// that reading only the held-out rays does not hold the whole file).
 /// `share` is the fraction of the rays `keep` passes, for the memory check.
+/// A file with no rays is an error; one whose rays `keep` all refuses gives
+/// none (the caller knows what it asked for).
 pub fn load_dataset_where(
     path: &Path,
     quiet: bool,
@@ -178,7 +180,16 @@ pub fn load_dataset_where(
     let mut rays = Vec::new();
     let mut index = 0usize;
     while let Some(chunk) = reader.next_chunk() {
-        for r in chunk.with_context(|| format!("reading {}", path.display()))? {
+        // The reader's errors name the file already; say it once.
+        let chunk = chunk.map_err(|e| {
+            let msg = e.to_string();
+            if msg.contains(&path.display().to_string()) {
+                anyhow::anyhow!(msg)
+            } else {
+                anyhow::anyhow!("reading {}: {msg}", path.display())
+            }
+        })?;
+        for r in chunk {
             if keep(index) {
                 rays.push(r);
             }
@@ -187,7 +198,7 @@ pub fn load_dataset_where(
         pb.inc(1);
     }
     pb.finish_and_clear();
-    if rays.is_empty() {
+    if index == 0 {
         bail!("{} holds no rays", path.display());
     }
     Ok((header, rays))

@@ -91,6 +91,16 @@ pub struct DataFingerprint {
     pub material_hash: u64,
 }
 
+impl std::fmt::Display for DataFingerprint {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} rays, {} hits, k = {}, mesh hash {:016x}, material hash {:016x}",
+            self.rays, self.hits, self.k, self.mesh_hash, self.material_hash
+        )
+    }
+}
+
 /// The size and checksum of one file of a checkpoint.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FileSum {

@@ -134,6 +134,23 @@ pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
             }
         }
     }
+    // Zero-area triangles are never hit: a file of nothing else renders as
+    // nothing, like a file without faces.
+    let has_area = |t: &[u32; 3]| {
+        let [a, b, c] = t.map(|i| positions[i as usize]);
+        let n = (b - a).cross(c - a).length_squared();
+        n > 0.0 && n.is_finite()
+    };
+    if !triangles.iter().any(has_area) {
+        return Err(ObjError {
+            line: None,
+            message: format!(
+                "all {} triangles have zero area (their corners are collinear or repeated), so \
+                 the mesh would be invisible",
+                triangles.len()
+            ),
+        });
+    }
     Ok(Mesh {
         positions,
         triangles,

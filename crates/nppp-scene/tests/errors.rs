@@ -1084,6 +1084,17 @@ fn obj_without_faces() {
     obj_error("v 0 0 0\nv 1 0 0\nv 0 1 0\n", false, "no faces");
 }
 
+/// Faces that exist but cannot be hit: the object rendered invisible
+/// without a word.
+#[test]
+fn obj_with_only_zero_area_faces() {
+    obj_error(
+        "v 0 0 0\nv 1 1 1\nv 2 2 2\nf 1 2 3\nf 1 1 2\n",
+        false,
+        "zero area",
+    );
+}
+
 // ---------------------------------------------------------------- instances
 
 #[test]

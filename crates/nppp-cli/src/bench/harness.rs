@@ -166,13 +166,14 @@ pub(super) fn render_with(
 fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     let name = scene_name(path);
     let dir = a.out.join(&name);
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut scene = nppp_scene::load_scene(path)?;
     let hash = scene_hash(path, &scene)?;
     scene
         .camera
         .resize(Some(plan.scale), None, None)
         .map_err(anyhow::Error::msg)?;
+    // Only once the scene is known good: a bad one left an empty folder.
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let (width, height) = (scene.camera.width, scene.camera.height);
     let m = a.max_bounces.unwrap_or(scene.render.max_bounces);
 
@@ -210,6 +211,16 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     };
     let (reference, reference_meta, reference_cached) =
         load_or_render_reference(a, &rs, &dir, &name, &want)?;
+    // relMSE against a black image is 0 for every configuration: a perfect
+    // score that measures nothing (a --scale that leaves one pixel, or a
+    // scene without light).
+    let lit = reference.pixels.iter().any(|p| p.iter().any(|&c| c > 0.0));
+    ensure!(
+        lit,
+        "[{name}] the reference ({width}x{height}, {} spp) is black: relMSE would be 0 for every \
+         configuration. Check the scene's lights, or give a --scale that leaves more pixels",
+        reference_meta.spp
+    );
 
     // Estimators: the scene's own files, checked before any configuration runs.
     let mut estimator_files: Vec<PathBuf> = scene

@@ -91,7 +91,7 @@ pub(super) fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
                 let mut points: Vec<(f64, f64)> = cells
                     .values()
                     .map(|&(s, e, n)| (s / n as f64, e / n as f64))
-                    .filter(|&(s, e)| s > 0.0 && e > 0.0)
+                    .filter(drawable)
                     .collect();
                 points.sort_by(|a, b| a.0.total_cmp(&b.0));
                 Curve {
@@ -147,6 +147,13 @@ fn curve_style(kind: Kind, m: u32, p: u32, mmax: u32) -> (plotters::style::RGBCo
     }
 }
 
+/// A (seconds, relMSE) point both log axes can show: positive, and within
+/// [`crate::plot::plottable`] (a time of 1.7e308 in a results file hung
+/// plotters on an axis padded to infinity).
+fn drawable(&(s, e): &(f64, f64)) -> bool {
+    s > 0.0 && e > 0.0 && crate::plot::plottable(s) && crate::plot::plottable(e)
+}
+
 fn curves(r: &SceneResult) -> Vec<Curve> {
     let ladder: Vec<u32> = {
         let mut v: Vec<u32> = r.measurements.iter().map(|m| m.spp).collect();
@@ -168,13 +175,8 @@ fn curves(r: &SceneResult) -> Vec<Curve> {
             let (color, width) = curve_style(c.kind, c.m, c.p, mmax);
             let mut points: Vec<(f64, f64)> = cells(r, ci, &ladder)
                 .iter()
-                .filter(|x| {
-                    x.seconds > 0.0
-                        && x.rel_mse > 0.0
-                        && crate::plot::plottable(x.seconds)
-                        && crate::plot::plottable(x.rel_mse)
-                })
                 .map(|x| (x.seconds, x.rel_mse))
+                .filter(drawable)
                 .collect();
             points.sort_by(|a, b| a.0.total_cmp(&b.0));
             Curve {
@@ -286,4 +288,40 @@ pub(super) fn plot_scene(r: &SceneResult, out: &Path) -> Result<Vec<String>> {
         Err(e) => done.push(format!("{} not written: {e:#}", png.display())),
     }
     Ok(done)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn points_near_f64_limits_are_not_drawn() {
+        assert!(drawable(&(0.5, 1e-3)));
+        for p in [
+            (1.7e308, 0.1),
+            (f64::INFINITY, 0.1),
+            (0.5, f64::NAN),
+            (0.0, 0.1),
+            (0.5, -1.0),
+        ] {
+            assert!(!drawable(&p), "{p:?}");
+        }
+        // A results file with such a time plots (it hung in plotters).
+        let dir = std::env::temp_dir().join(format!("nppp-bench-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let csv = dir.join("results.csv");
+        std::fs::write(
+            &csv,
+            "scene,config,kind,max_bounces,min_bounces,spp,width,height,seconds,rel_mse\n\
+             s,PT M=1,pt,1,,1,8,8,1.7e308,0.1\n\
+             s,PT M=2,pt,2,,1,8,8,0.5,0.2\n\
+             s,PT M=2,pt,2,,4,8,8,2.0,0.05\n",
+        )
+        .unwrap();
+        if crate::plot::register_font().is_ok() {
+            plot_from_csv(&csv, &dir.join("plots")).unwrap();
+            assert!(dir.join("plots/s.svg").is_file());
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -99,7 +99,8 @@ fn train_on(
     // The exits per ray a step uses can only be as many as the file holds;
     // the saved config says what actually runs.
     if cfg.k > data.k {
-        if !opts.quiet {
+        // Said even with --quiet when the user asked for that k.
+        if !opts.quiet || opts.k.is_some() {
             eprintln!(
                 "note: {} holds {} exits per ray, so each step uses k = {} (not {}); \
                  train_config.json records {}",
@@ -114,7 +115,9 @@ fn train_on(
     }
     if data.heldout.is_empty() {
         bail!(
-            "no held-out rays: the data has {} rays and every {}th is held out",
+            "{}: no held-out rays: the data has {} rays and every {}th is held out (fewer \
+             than that many rays, or --holdout-every too large)",
+            opts.data.display(),
             data.train.len(),
             cfg.holdout_every
         );
@@ -146,7 +149,7 @@ fn train_on(
         let state = ckpt.state.clone();
         if state.data != fp {
             bail!(
-                "--resume: the checkpoint was trained on other data ({:?}) than {} ({:?})",
+                "--resume: the checkpoint was trained on other data ({}) than {} ({})",
                 state.data,
                 opts.data.display(),
                 fp

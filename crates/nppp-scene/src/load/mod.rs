@@ -616,11 +616,19 @@ impl Cx<'_> {
                 let sigma_a = coefficient("sigma_a")?;
                 let g = match f.get("g") {
                     Some((gv, gp)) => {
-                        let g = self.float(gv, &gp)?;
+                        let written = self.number(gv, &gp)?;
+                        let g = written as f32;
                         if g.is_nan() || g.abs() >= 1.0 {
+                            // Say what the file wrote, and what it rounds to
+                            // where that is what fails (0.99999999 is 1 in f32).
+                            let rounded = if (written.abs() < 1.0) && g.abs() >= 1.0 {
+                                format!(" (in single precision, the renderer's, {g})")
+                            } else {
+                                String::new()
+                            };
                             return Err(self.invalid(
                                 &gp,
-                                format!("{g} is outside (-1, 1): the Henyey-Greenstein mean cosine g must satisfy |g| < 1"),
+                                format!("{written} is outside (-1, 1){rounded}: the Henyey-Greenstein mean cosine g must satisfy |g| < 1"),
                             ));
                         }
                         g
