@@ -4,7 +4,8 @@
     check_media.py NPPP SCENE.json [SCENE.json ...] [--spp 1024] [--out DIR]
                    [--mesh-obj NAME=FILE ...] [--tol-mean 0.01] [--variant scalar_rgb]
 
-For each scene: Mitsuba 3 (`volpath`, max_depth = M + 1) renders the reference, nppp renders
+For each scene: Mitsuba 3 (`volpathmis`, max_depth = M + 1, no roulette: render_mitsuba.py)
+renders the reference, nppp renders
 it twice with different seeds (plain path tracing), and the table shows the relative
 difference of the image means and relMSE(nppp, Mitsuba) next to relMSE(nppp, nppp): two
 renderers that agree differ by about their own noise, so the first relMSE is about the
