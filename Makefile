@@ -42,12 +42,14 @@ ESTIMATOR := models/$(OBJECT_NAME).nppp
 GEN_RAYS_jade := --rays 300000
 GEN_FLAGS ?= --seed 0 $(GEN_RAYS_$(OBJECT))
 # The gold estimator was trained with the recipe shortened to 10000 steps
-# (about 8 minutes on 2 cores with its vertex head), as was jade; the knot and
-# glass with the full 24000 (knot about 21 minutes, glass 15-16). Glass at
-# 10000 steps rendered cornell-glass 0.5% too bright with 1.07x the relMSE
-# (BENCHMARKS.md, "cornell-glass").
+# (about 8 minutes on 2 cores with its vertex head), as was jade; the knot
+# with the full 24000 (about 21 minutes) and glass with twice that, 48000
+# (about 27 minutes). Glass at 10000 steps rendered cornell-glass 0.5% too
+# bright with 1.07x the relMSE of 24000; 48000 has 0.93x the relMSE of 24000
+# there, at its oracle's (BENCHMARKS.md, "cornell-glass").
 TRAIN_STEPS_gold := --steps 10000
 TRAIN_STEPS_jade := --steps 10000
+TRAIN_STEPS_glass := --steps 48000
 # The opaque knots' decoders and vertex heads are 32 wide (3,488
 # multiply-adds a row instead of 11,072): the same relMSE or less, and
 # entries cheap enough to lift NPPP by 8-16% at equal error; glass keeps 64,
