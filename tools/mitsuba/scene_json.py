@@ -508,6 +508,26 @@ def parse_transform(t, path):
 # scene
 
 
+def _check_closed(md, mname, matname):
+    """The contract's "the mesh must be closed" for a translucent material, as nppp reads
+    it: every edge shared by exactly two triangles that use it in opposite directions,
+    vertices at bit-identical positions counting as one (OBJ files split them at normal
+    seams). Mitsuba renders an open one without a word; nppp refuses it."""
+    weld = {}
+    ids = [weld.setdefault(tuple(p.tolist()), len(weld)) for p in md.positions]
+    count = {}
+    for f in md.faces:
+        for k in range(3):
+            a, b = ids[int(f[k])], ids[int(f[(k + 1) % 3])]
+            if a != b:
+                count[(a, b)] = count.get((a, b), 0) + 1
+    for (a, b), n in count.items():
+        if n != 1 or count.get((b, a), 0) != 1:
+            raise SceneError(f"meshes.{mname}: the mesh is not closed (an edge is used {n} time(s) "
+                             f"one way and {count.get((b, a), 0)} the other), which materials."
+                             f"{matname} (translucent) requires")
+
+
 def load_scene(path, mesh_obj=None):
     """mesh_obj: optional {mesh name: OBJ path (relative to the working directory)} that
     replaces those meshes' sources, e.g. a procedural mesh exported by the Rust side."""
@@ -574,6 +594,8 @@ def parse_scene(doc, scene_dir, path="<scene>"):
         if mname not in meshes:
             meshes[mname] = parse_mesh(mname, meshes_doc[mname], scene_dir)
         md = meshes[mname]
+        if materials[matname].type == "translucent":
+            _check_closed(md, mname, matname)
         s, R, t = parse_transform(inst.get("transform"), f"{ip}.transform")
         pos = (s * md.positions) @ R.T + t
         nrm = None
