@@ -162,12 +162,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
         .collect();
     nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
     // After that check, whose message says more when --out is an input.
-    ensure!(
-        a.overwrite || !a.out.exists(),
-        "--out {}: exists; training data can be hours of tracing, so gen keeps it: pass \
-         --overwrite to replace it, or name another file",
-        a.out.display()
-    );
+    crate::keep_existing_data(&a.out, a.overwrite, "gen")?;
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("--out {}: cannot create its folder", a.out.display()))?;

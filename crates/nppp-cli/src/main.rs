@@ -107,6 +107,19 @@ fn has_extension(p: &std::path::Path, ext: &str) -> bool {
         .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case(ext))
 }
 
+/// `--out` of a command that writes training data (gen, merge of data
+/// parts): an existing file is kept unless `overwrite`, since it can be
+/// hours of tracing.
+fn keep_existing_data(out: &std::path::Path, overwrite: bool, command: &str) -> Result<()> {
+    anyhow::ensure!(
+        overwrite || !out.exists(),
+        "--out {}: exists; training data can be hours of tracing, so {command} keeps it: pass \
+         --overwrite to replace it, or name another file",
+        out.display()
+    );
+    Ok(())
+}
+
 impl Threads {
     /// Sizes the global thread pool (rayon: the renderer, data generation
     /// and Burn's CPU backends all run on it).

@@ -106,12 +106,7 @@ pub fn run(a: &MergeArgs) -> Result<()> {
             a.png.is_none(),
             "--png is for render parts; data parts merge into an .nppd file"
         );
-        ensure!(
-            a.overwrite || !a.out.exists(),
-            "--out {}: exists; training data can be hours of tracing, so merge keeps it: pass \
-             --overwrite to replace it, or name another file",
-            a.out.display()
-        );
+        crate::keep_existing_data(&a.out, a.overwrite, "merge")?;
         merge_data(a)
     }
 }

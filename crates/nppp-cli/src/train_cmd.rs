@@ -142,32 +142,32 @@ pub struct TrainArgs {
     pub quiet: bool,
 }
 
-/// A network size flag: what `ModelConfig::validate` accepts, said with the
-/// flag's name (it named the config key) before any data is read.
-fn network_size(s: &str) -> Result<usize, String> {
+/// A whole number in `range`, for a flag clap then names in its message.
+fn count_in(s: &str, range: std::ops::RangeInclusive<usize>) -> Result<usize, String> {
     let v: usize = s
         .parse()
         .map_err(|_| format!("\"{s}\" is not a whole number"))?;
-    if (1..=8192).contains(&v) {
+    if range.contains(&v) {
         Ok(v)
     } else {
         Err(format!(
-            "{v} is out of range: a layer or latent size is 1 to 8192"
+            "{v} is out of range: {} to {}",
+            range.start(),
+            range.end()
         ))
     }
+}
+
+/// A network size flag: what `ModelConfig::validate` accepts, said with the
+/// flag's name (it named the config key) before any data is read.
+fn network_size(s: &str) -> Result<usize, String> {
+    count_in(s, 1..=nppp_nn::model::MAX_LAYER_SIZE)
 }
 
 /// A count that 0 would make meaningless (no held-out rays scored reads as a
 /// perfect score of 0).
 fn at_least_one(s: &str) -> Result<usize, String> {
-    let v: usize = s
-        .parse()
-        .map_err(|_| format!("\"{s}\" is not a whole number"))?;
-    if v >= 1 {
-        Ok(v)
-    } else {
-        Err("must be at least 1".into())
-    }
+    count_in(s, 1..=usize::MAX)
 }
 
 impl TrainArgs {

@@ -180,16 +180,8 @@ pub fn load_dataset_where(
     let mut rays = Vec::new();
     let mut index = 0usize;
     while let Some(chunk) = reader.next_chunk() {
-        // The reader's errors name the file already; say it once.
-        let chunk = chunk.map_err(|e| {
-            let msg = e.to_string();
-            if msg.contains(&path.display().to_string()) {
-                anyhow::anyhow!(msg)
-            } else {
-                anyhow::anyhow!("reading {}: {msg}", path.display())
-            }
-        })?;
-        for r in chunk {
+        // Every reader error names the file already: no context of our own.
+        for r in chunk? {
             if keep(index) {
                 rays.push(r);
             }

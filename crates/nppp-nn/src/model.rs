@@ -56,6 +56,10 @@ pub struct ModelConfig {
     pub vertex_head: bool,
 }
 
+/// The largest latent, noise or hidden layer size a model may have: larger
+/// is a typo or a damaged file, not a network this pipeline trains.
+pub const MAX_LAYER_SIZE: usize = 8192;
+
 impl ModelConfig {
     /// Rejects shapes that cannot be built or that a file could carry by
     /// mistake (zero or absurd sizes).
@@ -68,8 +72,8 @@ impl ModelConfig {
             ("mask_width", self.mask_width),
         ];
         for (name, v) in dims {
-            if v == 0 || v > 8192 {
-                bail!("model config: {name} = {v} is out of range 1..=8192");
+            if v == 0 || v > MAX_LAYER_SIZE {
+                bail!("model config: {name} = {v} is out of range 1..={MAX_LAYER_SIZE}");
             }
         }
         for (name, v) in [

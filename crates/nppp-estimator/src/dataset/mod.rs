@@ -80,19 +80,28 @@ impl DatasetHeader {
     /// Whether the data is of a translucent object (a medium inside), read
     /// from the recorded material.
     pub fn has_medium(&self) -> bool {
-        serde_json::from_str::<serde_json::Value>(&self.material_json).is_ok_and(|m| m["type"] == "translucent")
+        Self::is_translucent(&self.material())
+    }
+
+    /// The recorded material (null when it is not JSON).
+    fn material(&self) -> serde_json::Value {
+        serde_json::from_str(&self.material_json).unwrap_or_default()
+    }
+
+    fn is_translucent(material: &serde_json::Value) -> bool {
+        material["type"] == "translucent"
     }
 
     /// The most throughput and radiance per channel this object's exits can
     /// carry (radiance only for an emitter, read from the recorded material).
     pub fn exit_bounds(&self) -> crate::ExitBounds {
-        let material = serde_json::from_str::<serde_json::Value>(&self.material_json).unwrap_or_default();
+        let material = self.material();
         let emitted = if material["type"] == "emitter" {
             material["radiance"].as_array().map_or(0.0, |c| c.iter().filter_map(|x| x.as_f64()).fold(0.0, f64::max))
         } else {
             0.0
         };
-        crate::ExitBounds::new(self.has_medium(), emitted as f32)
+        crate::ExitBounds::new(Self::is_translucent(&material), emitted as f32)
     }
 }
 
