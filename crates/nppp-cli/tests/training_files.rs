@@ -20,6 +20,16 @@ fn scratch(name: &str) -> PathBuf {
     common::scratch("train-files", name)
 }
 
+/// `kill -SIGNAL` to a spawned `nppp` (INT or TERM), as a user's Ctrl-C or
+/// a job scheduler would.
+fn send_signal(signal: &str, child: &std::process::Child) {
+    let killed = Command::new("kill")
+        .args([format!("-{signal}"), child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success(), "kill -{signal} failed");
+}
+
 fn assert_ok(what: &str, o: &Output) {
     assert!(o.status.success(), "{what} failed:\n{}", stderr(o));
 }
@@ -380,11 +390,7 @@ fn an_interrupted_gen_leaves_no_temporary_file() {
             assert!(t0.elapsed().as_secs() < 120, "no temporary file appeared");
             std::thread::sleep(std::time::Duration::from_millis(50));
         }
-        let killed = Command::new("kill")
-            .args([format!("-{signal}"), child.id().to_string()])
-            .status()
-            .unwrap();
-        assert!(killed.success());
+        send_signal(signal, &child);
         let o = child.wait_with_output().unwrap();
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(
@@ -739,11 +745,7 @@ fn an_interrupted_run_saves_a_checkpoint_and_says_how_to_resume() {
             &o,
             &["another `nppp train`"],
         );
-        let killed = Command::new("kill")
-            .args([format!("-{signal}"), child.id().to_string()])
-            .status()
-            .unwrap();
-        assert!(killed.success());
+        send_signal(signal, &child);
         for line in lines {
             seen.push_str(&line.unwrap());
             seen.push('\n');
