@@ -1,17 +1,25 @@
 #!/usr/bin/env python3
-"""Fits the `auto` pilot's cost model (crates/nppp-render/src/auto.rs) to timed
-renders: render time = a x the later rays' inner BVH node visits + b x shadow rays
-+ c x estimator entries + d x mask skips, by least squares on
-relative error (every
-render counts the same, whatever its length). Renders every scene of
-data/scenes as plain PT and with its estimators at P = 0, 1, 2 (with and
-without first-vertex NEE), in alternating rounds, reads the work each render
-counted from its log, and prints the weights in later inner node-visit units (what
-auto.rs's COST_PER_* constants hold) and each render's predicted over
-measured time. Standard library only; not part of the pipeline or of
-`make test`.
+"""Fits the `auto` pilot's cost model (crates/nppp-render/src/auto/mod.rs) to
+timed renders: render time = a x the later rays' inner BVH node visits + b x
+later closest-hit rays + c x shadow rays + d x estimator entry units + e x
+mask skips, by least squares on relative error (every render counts the
+same, whatever its length). An entry's units are the model's split of an
+entry into its fixed part, its decoder rows, their multiply-adds and their
+noise normals (COST_PER_ENTRY ... COST_PER_DECODER_NORMAL); the fit scales
+that split as a whole. Renders the benchmark scenes (and room-glass, whose
+paths are mostly refractions without shadow rays: the later rays' own term
+is not identifiable without it) as plain PT and with their estimators at
+P = 0, 1, 2, each with the next-event estimation `auto` would try, in
+alternating rounds; reads the work each render counted from its `work:` log
+line, and prints the weights in later inner node-visit units (what the
+COST_PER_* constants hold) and each render's predicted over measured time.
+Standard library only; not part of the pipeline or of `make test`.
 
     python3 tools/fit_cost_model.py --nppp ~/.cache/nppp-target/release/nppp
+
+`--validate DUMP` skips the fit's renders and prints only the time ratios
+the given weights predict for a dump written by `--dump` (with `--scene` of
+your own, renders those instead: scenes the fit never saw).
 """
 
 import argparse
@@ -24,48 +32,42 @@ from pathlib import Path
 
 from nppp_log import TIME, render_log
 
-TRACED = re.compile(r"traced: ([0-9.]+) M rays, ([0-9.]+) M shadow rays, ([0-9.]+) M BVH node visits "
-                    r"\(([0-9.]+) M by camera rays, ([0-9.]+) M leaves by later rays\)")
-# What each render counted, in this order.
-TERMS = ["camera node visit", "deep inner node visit", "closest-hit ray", "shadow ray",
-         "estimator entry", "deep leaf visit", "mask skip"]
-FITTED = ["deep inner node visit", "shadow ray", "estimator entry", "mask skip"]
-ENTRIES = re.compile(r"estimators \([A-Za-z]+, P = \d+\): (\d+) entries, (\d+) mask skips")
+WORK = re.compile(r"work: [0-9.]+ M units of auto's cost model: (\d+) later inner node visits, "
+                  r"(\d+) later rays, (\d+) shadow rays, (\d+) estimator entries, (\d+) decoder rows "
+                  r"of (\d+) multiply-adds and (\d+) noise normals in all, (\d+) mask skips")
+TERMS = ["later inner node visit", "later ray", "shadow ray", "estimator entry unit", "mask skip"]
+# The entry's split in crates/nppp-render/src/auto/mod.rs (COST_PER_ENTRY,
+# COST_PER_DECODER_ROW, COST_PER_DECODER_MULTIPLY_ADD, COST_PER_DECODER_NORMAL).
+ENTRY_SPLIT = (7.0, 1.1, 7.9 / 11_072.0, 0.1125)
 
-# scene, common flags, whether its estimator's surface takes a light sample
+# scene file, common flags, the next-event estimation auto tries for its estimator
 SCENES = [
-    ("cornell-box", [], True),
-    ("cornell-gold", [], True),
-    ("cornell-glass", [], False),
-    ("cornell-jade", ["--scale", "0.5"], False),
-    ("tube", [], True),
-    ("room", ["--scale", "0.5"], True),
-    ("room-skylight", ["--scale", "0.5"], True),
+    ("data/scenes/cornell-box.json", [], "picked"),
+    ("data/scenes/cornell-gold.json", [], "picked"),
+    ("data/scenes/cornell-glass.json", [], "off"),
+    ("data/scenes/cornell-jade.json", ["--scale", "0.5"], "off"),
+    ("data/scenes/tube.json", [], "first"),
+    ("data/scenes/room.json", ["--scale", "0.5"], "picked"),
+    ("data/scenes/room-skylight.json", ["--scale", "0.5"], "picked"),
+    ("data/scenes/variants/room-glass.json", ["--scale", "0.5"], "off"),
 ]
 
 
 def configs(nee):
     out = [("PT", ["--estimators", "off"])]
     for p in (0, 1, 2):
-        out.append((f"P={p}", ["--estimators", "neural", "--min-bounces", str(p)]))
-        if nee:
-            out.append((f"P={p}+NEE", ["--estimators", "neural", "--min-bounces", str(p),
-                                        "--entry-nee", "first"]))
+        out.append((f"P={p}" + ("" if nee == "off" else f"+{nee}"),
+                    ["--estimators", "neural", "--min-bounces", str(p), "--entry-nee", nee]))
     return out
 
 
 def render(nppp, scene, spp, seed, flags, out):
-    cmd = [nppp, "render", f"data/scenes/{scene}.json", "--spp", str(spp), "--seed", str(seed),
+    cmd = [nppp, "render", scene, "--spp", str(spp), "--seed", str(seed),
            "--out", out, "--quiet"] + flags
-    log, (t, w) = render_log(cmd, TIME, TRACED)
-    e = ENTRIES.search(log)
-    rays, shadow, nodes, camera, leaves = (float(x) * 1e6 for x in w.groups())
-    # The later rays' inner node visits apart from the camera rays' visits
-    # (coherent, in cache) and from their leaf visits (prefetched while the
-    # parent was tested): both are counted in the dump and fitted near zero
-    # (BENCHMARKS.md, "auto"), so the model leaves them out.
-    entries, skips = (float(e.group(1)), float(e.group(2))) if e else (0.0, 0.0)
-    return float(t.group(1)), [camera, nodes - camera - leaves, rays, shadow, entries, leaves, skips]
+    _, (t, w) = render_log(cmd, TIME, WORK)
+    inner, rays, shadow, entries, rows, macs, normals, skips = (float(x) for x in w.groups())
+    e, r, m, n = ENTRY_SPLIT
+    return float(t.group(1)), [inner, rays, shadow, e * entries + r * rows + m * macs + n * normals, skips]
 
 
 def solve(a, b):
@@ -82,22 +84,53 @@ def solve(a, b):
     return [m[i][n] / m[i][i] for i in range(n)]
 
 
+def predict(w, x):
+    return sum(a * b for a, b in zip(w, x))
+
+
+def ratios(rows, w, scenes):
+    """Measured and predicted time ratios to PT: what the pilot compares."""
+    print("\n| scene | config | time x PT measured | predicted |")
+    print("|---|---|---:|---:|")
+    errs = []
+    for scene in scenes:
+        base = next((r for r in rows if r[0] == (scene, "PT")), None)
+        if base is None:
+            continue
+        pb = predict(w, base[2])
+        for (s, label), t, x in rows:
+            if s == scene and label != "PT":
+                meas, pred = t / base[1], predict(w, x) / pb
+                errs.append(pred / meas - 1.0)
+                print(f"| {Path(scene).stem} | {label} | {meas:.2f} | {pred:.2f} |")
+    if errs:
+        rms = (sum(e * e for e in errs) / len(errs)) ** 0.5
+        print(f"\nratio error: RMS {rms * 100:.1f}%, largest {max(abs(e) for e in errs) * 100:.1f}%")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--nppp", required=True)
-    ap.add_argument("--spp", type=int, default=16)
-    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--spp", type=int, default=32)
+    ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--dump", help="also write every render's time and counts here (JSON)")
+    ap.add_argument("--validate", nargs=len(TERMS), type=float, metavar="W",
+                    help="no fit: predict with these weights (later-inner-node-visit units, in the order "
+                         + ", ".join(TERMS) + ") the time ratios of --scene's renders")
+    ap.add_argument("--scene", action="append", nargs=3, metavar=("FILE", "COMMON", "NEE"),
+                    help="render this scene instead of the fit's set (COMMON: its flags as one "
+                         "string, NEE: off, first or picked); repeatable")
     args = ap.parse_args()
+    scenes = SCENES if not args.scene else [(f, c.split(), n) for f, c, n in args.scene]
 
     out = str(Path(tempfile.mkdtemp(prefix="nppp-fit-cost-")) / "render.exr")
     runs = {}
     for rnd in range(1, args.rounds + 1):
-        for scene, common, nee in SCENES:
+        for scene, common, nee in scenes:
             for label, flags in configs(nee):
                 t, x = render(args.nppp, scene, args.spp, rnd, common + flags, out)
                 runs.setdefault((scene, label), []).append((t, x))
-                print(f"round {rnd} {scene:>14} {label:>9}: {t:.3f} s", file=sys.stderr)
+                print(f"round {rnd} {Path(scene).stem:>14} {label:>14}: {t:.3f} s", file=sys.stderr)
 
     rows = []
     for key, rs in runs.items():
@@ -107,37 +140,25 @@ def main():
     if args.dump:
         with open(args.dump, "w") as f:
             json.dump([{"scene": k[0], "config": k[1], "seconds": t, "counts": x} for k, t, x in rows], f)
-    # Weighted least squares: minimize sum ((x . w - t) / t)^2 over the
-    # fitted terms (closest-hit rays are left out: they track node visits so
-    # closely that their weight is not identifiable, and came out negative).
-    fit = [k for k, name in enumerate(TERMS) if name in FITTED]
-    n = len(fit)
-    ata = [[sum(x[fit[i]] * x[fit[j]] / (t * t) for _, t, x in rows) for j in range(n)] for i in range(n)]
-    atb = [sum(x[fit[i]] / t for _, t, x in rows) for i in range(n)]
-    w = [0.0] * len(TERMS)
-    for k, v in zip(fit, solve(ata, atb)):
-        w[k] = v
-    unit = w[TERMS.index("deep inner node visit")]
-    print("\n| term | seconds per item (2 threads) | in inner node visits |")
+    names = [s for s, _, _ in scenes]
+    if args.validate:
+        ratios(rows, args.validate, names)
+        return
+    # Weighted least squares: minimize sum ((x . w - t) / t)^2.
+    n = len(TERMS)
+    ata = [[sum(x[i] * x[j] / (t * t) for _, t, x in rows) for j in range(n)] for i in range(n)]
+    atb = [sum(x[i] / t for _, t, x in rows) for i in range(n)]
+    w = solve(ata, atb)
+    unit = w[0]
+    print("\n| term | seconds per item (2 threads) | in later inner node visits |")
     print("|---|---:|---:|")
     for name, v in zip(TERMS, w):
-        if name in FITTED:
-            print(f"| {name} | {v * 1e9:.1f} ns | {v / unit:.2f} |")
+        print(f"| {name} | {v * 1e9:.1f} ns | {v / unit:.3f} |")
     print("\n| scene | config | measured s | predicted / measured |")
     print("|---|---|---:|---:|")
     for (scene, label), t, x in rows:
-        pred = sum(a * b for a, b in zip(w, x))
-        print(f"| {scene} | {label} | {t:.3f} | {pred / t:.2f} |")
-    # Time ratios to PT, measured and predicted: what the pilot compares.
-    print("\n| scene | config | time x PT measured | predicted |")
-    print("|---|---|---:|---:|")
-    for scene, _, _ in SCENES:
-        base = next(r for r in rows if r[0] == (scene, "PT"))
-        pb = sum(a * b for a, b in zip(w, base[2]))
-        for (s, label), t, x in rows:
-            if s == scene and label != "PT":
-                pred = sum(a * b for a, b in zip(w, x))
-                print(f"| {scene} | {label} | {t / base[1]:.2f} | {pred / pb:.2f} |")
+        print(f"| {Path(scene).stem} | {label} | {t:.3f} | {predict(w, x) / t:.2f} |")
+    ratios(rows, w, names)
 
 
 if __name__ == "__main__":

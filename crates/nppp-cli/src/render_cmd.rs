@@ -654,6 +654,10 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         stats.work.leaf_visits as f64 / 1e6
     );
     eprintln!(
+        "work: {}",
+        nppp_render::auto::describe_work(&stats.work, &stats.estimators)
+    );
+    eprintln!(
         "{}: {}x{} spp {} M {} in {:.2}s (scene build {:.2}s), {:.3} M samples/s, mean rgb [{:.4} {:.4} {:.4}]{}",
         a.out.display(),
         img.width,

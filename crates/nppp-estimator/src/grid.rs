@@ -131,6 +131,15 @@ fn v_axis(v: f32, s: usize) -> Axis {
     Axis { i: [j0, j1], w: [1.0 - f, f] }
 }
 
+/// The cell of a resolution-`s` grid that [`QuantizedGrid::interpolate`]
+/// reads for `pair`: its lowest node index on each axis (the cell's corners
+/// are those and the next, wrapping on the periodic v axes).
+#[inline(always)]
+pub(crate) fn cell_of(pair: &SpherePair, s: usize) -> [usize; 4] {
+    let [u1, v1, u2, v2] = pair.0;
+    [u_axis(u1, s).i[0], v_axis(v1, s).i[0], u_axis(u2, s).i[0], v_axis(v2, s).i[0]]
+}
+
 impl QuantizedGrid {
     /// Quantizes a node-major f32 grid (`channels` values per node).
     pub fn from_f32(res: u32, channels: u32, values: &[f32], bits: u8) -> Result<Self, GridError> {

@@ -11,6 +11,7 @@ pub mod dataset;
 pub mod decoder;
 pub mod exit;
 pub mod grid;
+pub mod mask_sign;
 pub mod mlp;
 pub mod quant;
 pub mod recipe;

@@ -58,6 +58,10 @@ pub struct IntegratorSettings {
 pub struct WorkCounts {
     /// Closest-hit queries (one per live path per wavefront step).
     pub rays: u64,
+    /// The part of `rays` that are camera rays (one per sample): the same
+    /// in every configuration of a scene, so the `auto` pilot's cost model
+    /// counts only the later ones.
+    pub camera_rays: u64,
     /// Shadow rays traced for next-event estimation.
     pub shadow_rays: u64,
     /// BVH nodes and leaves visited by all traversals (closest hits, shadow
@@ -77,6 +81,7 @@ pub struct WorkCounts {
 impl WorkCounts {
     pub fn merge(&mut self, o: &WorkCounts) {
         self.rays += o.rays;
+        self.camera_rays += o.camera_rays;
         self.shadow_rays += o.shadow_rays;
         self.node_visits += o.node_visits;
         self.camera_node_visits += o.camera_node_visits;
@@ -120,6 +125,7 @@ impl Wavefront {
         while !self.paths.is_empty() {
             self.intersect(scene, settings);
             if camera_step {
+                self.work.camera_rays += self.paths.len() as u64;
                 self.work.camera_node_visits += crate::bvh::node_visits() - visits_before;
                 camera_leaves = crate::bvh::leaf_visits() - leaves_before;
                 camera_step = false;

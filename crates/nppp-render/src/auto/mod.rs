@@ -70,6 +70,9 @@ pub use confirm::{Plan, Segment, plan};
 /// A shadow ray beyond its node visits (the light sample, the BSDF
 /// evaluation, the MIS weights).
 pub const COST_PER_SHADOW_RAY: f64 = 2.7;
+/// A later closest-hit ray beyond its node visits (shading the vertex,
+/// sampling its BSDF, scheduling the path).
+pub const COST_PER_LATER_RAY: f64 = 0.0;
 /// One estimator entry beyond its decoder rows: the latent lookup, decoding
 /// the exit, its mask test. The fit above gave 17.8 per entry with the
 /// 11,072-multiply-add decoder and 16 noise dimensions every file then had;
@@ -95,15 +98,44 @@ pub const COST_PER_MASK_SKIP: f64 = 1.5;
 
 /// Counted work of a render, in later-inner-node-visit equivalents.
 pub fn work_cost(work: &WorkCounts, estimators: &EstimatorStats) -> f64 {
-    let later = work.node_visits.saturating_sub(work.camera_node_visits);
-    let inner = later.saturating_sub(work.leaf_visits);
-    inner as f64
+    later_inner_node_visits(work) as f64
+        + COST_PER_LATER_RAY * later_rays(work) as f64
         + COST_PER_SHADOW_RAY * work.shadow_rays as f64
         + COST_PER_ENTRY * estimators.entries as f64
         + COST_PER_DECODER_ROW * estimators.decoder_rows as f64
         + COST_PER_DECODER_MULTIPLY_ADD * estimators.decoder_multiply_adds as f64
         + COST_PER_DECODER_NORMAL * estimators.decoder_normals as f64
         + COST_PER_MASK_SKIP * estimators.mask_skips as f64
+}
+
+/// The inner BVH node visits of every ray but the camera rays: the cost
+/// model's unit.
+pub fn later_inner_node_visits(work: &WorkCounts) -> u64 {
+    let later = work.node_visits.saturating_sub(work.camera_node_visits);
+    later.saturating_sub(work.leaf_visits)
+}
+
+/// The closest-hit rays after the camera rays: one per path vertex beyond
+/// the first, each shaded, sampled and scheduled whatever its traversal.
+pub fn later_rays(work: &WorkCounts) -> u64 {
+    work.rays.saturating_sub(work.camera_rays)
+}
+
+/// What [`work_cost`] counted, term by term, for the render's log (and for
+/// `tools/fit_cost_model.py`, which reads it back).
+pub fn describe_work(work: &WorkCounts, estimators: &EstimatorStats) -> String {
+    format!(
+        "{:.4} M units of auto's cost model: {} later inner node visits, {} later rays, {} shadow rays, {} estimator entries, {} decoder rows of {} multiply-adds and {} noise normals in all, {} mask skips",
+        work_cost(work, estimators) / 1e6,
+        later_inner_node_visits(work),
+        later_rays(work),
+        work.shadow_rays,
+        estimators.entries,
+        estimators.decoder_rows,
+        estimators.decoder_multiply_adds,
+        estimators.decoder_normals,
+        estimators.mask_skips
+    )
 }
 
 #[derive(Clone, Copy, Debug)]
