@@ -1,6 +1,7 @@
 //! The estimator's hot paths on the committed default estimator
 //! (`models/cornell-knot.nppp`): latent and mask grid lookups (quadrilinear
-//! and stochastic, incoherent rays), and the decoder at several batch sizes
+//! and stochastic, incoherent rays; the mask's hit test with and without its
+//! sign table), and the decoder at several batch sizes
 //! through the estimator interface the renderer calls
 //! (`EstimatorSampler::sample_batch`: latent lookup, noise, decoder, inverse
 //! transform) and the decoder backends alone (`ExitDecoder::decode`): the
@@ -60,8 +61,13 @@ fn grids(c: &mut Criterion) {
             acc
         })
     });
+    // The hit test as the renderer asks it (the sign table first, see
+    // nppp_estimator::mask_sign), and the interpolation alone.
     g.bench_function("mask_64^4_4bit", |b| {
         b.iter(|| pairs.iter().filter(|p| s.hits(p)).count())
+    });
+    g.bench_function("mask_64^4_4bit_interpolated", |b| {
+        b.iter(|| pairs.iter().filter(|p| s.mask_logit(p) > 0.0).count())
     });
     g.finish();
 }

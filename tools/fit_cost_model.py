@@ -2,24 +2,29 @@
 """Fits the `auto` pilot's cost model (crates/nppp-render/src/auto/mod.rs) to
 timed renders: render time = a x the later rays' inner BVH node visits + b x
 later closest-hit rays + c x shadow rays + d x estimator entry units + e x
-mask skips, by least squares on relative error (every render counts the
-same, whatever its length). An entry's units are the model's split of an
-entry into its fixed part, its decoder rows, their multiply-adds and their
-noise normals (COST_PER_ENTRY ... COST_PER_DECODER_NORMAL); the fit scales
-that split as a whole. Renders the benchmark scenes (and room-glass, whose
-paths are mostly refractions without shadow rays: the later rays' own term
-is not identifiable without it) as plain PT and with their estimators at
-P = 0, 1, 2, each with the next-event estimation `auto` would try, in
-alternating rounds; reads the work each render counted from its `work:` log
-line, and prints the weights in later inner node-visit units (what the
-COST_PER_* constants hold) and each render's predicted over measured time.
-Standard library only; not part of the pipeline or of `make test`.
+mask skips + f x the later rays' leaf visits, by least squares on relative
+error (every render counts the same, whatever its length). An entry's units
+are the model's split of an entry into its fixed part, its decoder rows,
+their multiply-adds and their noise normals (COST_PER_ENTRY ...
+COST_PER_DECODER_NORMAL); the fit scales that split as a whole. The model
+prices neither later rays nor leaf visits: they are fitted here to show
+whether they should be (room-glass is in the set because its paths are
+mostly refractions without shadow rays, which separates a ray's own cost
+from its shadow ray's).
+
+Renders the benchmark scenes and room-glass as plain PT and with their
+estimators at P = 0, 1, 2, each with the next-event estimation `auto` would
+try, in alternating rounds; reads the work each render counted from its
+`work:` and `traced:` log lines; prints the weights in later inner
+node-visit units (what the COST_PER_* constants hold), each render's
+predicted over measured time, and the time ratios to PT (what the pilot
+compares), measured and predicted. Standard library only; not part of the
+pipeline or of `make test`.
 
     python3 tools/fit_cost_model.py --nppp ~/.cache/nppp-target/release/nppp
 
-`--validate DUMP` skips the fit's renders and prints only the time ratios
-the given weights predict for a dump written by `--dump` (with `--scene` of
-your own, renders those instead: scenes the fit never saw).
+`--validate W...` predicts with the given weights instead of fitting (with
+`--scene`, on scenes the fit never saw).
 """
 
 import argparse
@@ -35,7 +40,9 @@ from nppp_log import TIME, render_log
 WORK = re.compile(r"work: [0-9.]+ M units of auto's cost model: (\d+) later inner node visits, "
                   r"(\d+) later rays, (\d+) shadow rays, (\d+) estimator entries, (\d+) decoder rows "
                   r"of (\d+) multiply-adds and (\d+) noise normals in all, (\d+) mask skips")
-TERMS = ["later inner node visit", "later ray", "shadow ray", "estimator entry unit", "mask skip"]
+TRACED = re.compile(r"([0-9.]+) M leaves by later rays")
+TERMS = ["later inner node visit", "later ray", "shadow ray", "estimator entry unit", "mask skip",
+         "later leaf visit"]
 # The entry's split in crates/nppp-render/src/auto/mod.rs (COST_PER_ENTRY,
 # COST_PER_DECODER_ROW, COST_PER_DECODER_MULTIPLY_ADD, COST_PER_DECODER_NORMAL).
 ENTRY_SPLIT = (7.0, 1.1, 7.9 / 11_072.0, 0.1125)
@@ -64,10 +71,11 @@ def configs(nee):
 def render(nppp, scene, spp, seed, flags, out):
     cmd = [nppp, "render", scene, "--spp", str(spp), "--seed", str(seed),
            "--out", out, "--quiet"] + flags
-    _, (t, w) = render_log(cmd, TIME, WORK)
+    _, (t, w, leaves) = render_log(cmd, TIME, WORK, TRACED)
     inner, rays, shadow, entries, rows, macs, normals, skips = (float(x) for x in w.groups())
     e, r, m, n = ENTRY_SPLIT
-    return float(t.group(1)), [inner, rays, shadow, e * entries + r * rows + m * macs + n * normals, skips]
+    return float(t.group(1)), [inner, rays, shadow, e * entries + r * rows + m * macs + n * normals, skips,
+                               float(leaves.group(1)) * 1e6]
 
 
 def solve(a, b):

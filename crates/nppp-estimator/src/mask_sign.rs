@@ -17,9 +17,11 @@
 //! with a margin far above the interpolation's rounding error.
 //!
 //! On cornell-glass at P = 1 the table answers 56% of the mask lookups
-//! (a third of its blocks are mixed), and the render takes 3-5% less time,
-//! with the same image; with `FACTOR` 4 (16 KiB) it answered only 22%.
-//! Building it takes about 25 ms on two cores for a 64^4 mask.
+//! (a third of its blocks are mixed; with `FACTOR` 4, 16 KiB, it answered
+//! only 22%). A hit test takes 44 ns instead of 88 (criterion,
+//! `estimator_grid_lookup/mask_64^4_4bit`, uniform chords); renders keep
+//! the same image and take 1-5% less time (BENCHMARKS.md, "cornell-glass").
+//! Building the table takes about 25 ms on two cores for a 64^4 mask.
 
 use crate::grid::{QuantizedGrid, cell_of};
 use crate::quant::get_code;
