@@ -3,7 +3,8 @@
 //! estimation and its transform, the training-data file and its shards, the baked
 //! `.nppp` file (quantized 4D latent and mask grids plus decoder weights), and
 //! the estimator interface every caller uses: [`EstimatorSampler`] (mask,
-//! latent lookup, one batched decode path) over an [`ExitDecoder`] backend
+//! answered from its sign table where that knows, latent lookup, one
+//! batched decode path) over an [`ExitDecoder`] backend
 //! (plain Rust here; nppp-nn implements it for Burn).
 
 pub mod baked;
