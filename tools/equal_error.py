@@ -3,7 +3,8 @@
 measured in one run: every configuration renders the scene at the same spp,
 in alternating rounds (seeds 1..rounds), against a high-spp PT reference.
 Prints per configuration the median render time, the mean relMSE, the image
-mean, the time and relMSE multiples of PT's at equal spp (the thesis'
+mean, the range of its per-round time ratios to PT's (the machine's timing
+noise during the run), the time and relMSE multiples of PT's at equal spp (the thesis'
 metric), and the equal-error speed-up (t_PT x relMSE_PT) / (t x relMSE).
 
 A configuration is a label and the extra `nppp render` flags, e.g.
@@ -95,14 +96,19 @@ def main():
     e_pt = statistics.mean(errs["PT"])
     m_pt = statistics.mean(means["PT"])
     print(f"\n{a.scene}, {a.spp} spp, {a.rounds} alternating rounds, reference {reference}\n")
-    print("| config | median time (s) | relMSE | mean / PT's | time x PT | relMSE x PT | equal-error speed-up |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    print("| config | median time (s) | relMSE | mean / PT's | time x PT | relMSE x PT | equal-error speed-up "
+          "| time x PT, per round |")
+    print("|---|---:|---:|---:|---:|---:|---:|---|")
     for label, _ in configs:
         t = statistics.median(times[label])
         e = statistics.mean(errs[label])
         m = statistics.mean(means[label])
+        # Each round's time over the same round's PT: how far the
+        # machine's load moved the ratio while this run lasted.
+        per_round = sorted(x / p for x, p in zip(times[label], times["PT"]))
+        spread = f"{per_round[0]:.2f}-{per_round[-1]:.2f}" if label != "PT" else "-"
         print(f"| {label} | {t:.3f} | {e:.5f} | {m / m_pt:.4f} | {t / t_pt:.2f} | "
-              f"{e / e_pt:.2f} | {t_pt * e_pt / (t * e):.2f}x |")
+              f"{e / e_pt:.2f} | {t_pt * e_pt / (t * e):.2f}x | {spread} |")
 
 
 if __name__ == "__main__":
