@@ -1,15 +1,18 @@
 #!/usr/bin/env python3
 """How much could any estimator save on a scene? Times, side by side and in
-alternating rounds, plain path tracing, PT + NPPP and the cost floor
-(`nppp render --estimators cost-floor`: the baked masks decide entries and
-every entry ends its path for free) at each P, and prints median render
-times and their ratios to PT.
+alternating rounds, plain path tracing, PT + NPPP, free exits (`nppp render
+--estimators free-exits`: the baked masks decide entries and every path
+goes on from a free exit straight through the sphere) and the cost floor
+(`--estimators cost-floor`: every entry ends its path for free) at each P,
+and prints median render times and their ratios to PT.
 
 The floor's time is a lower bound for any estimator that uses the same
 masks: it pays only what every NPPP render pays before its decoder (the
 sphere query and the mask lookup), and never continues a path. If the
 floor's ratio at some P is above a target, no network, however fast or
-accurate, reaches that target there.
+accurate, reaches that target there. Free exits pay for the continued
+paths too: NPPP's time over theirs is what its entries (latent lookup,
+noise, decoder) cost.
 
 Standard library only; not part of the pipeline or of `make test`.
 
@@ -52,7 +55,8 @@ def main():
     ps = [int(p) for p in a.ps.split(",")]
     configs = [("PT", "off", None)]
     for p in ps:
-        configs += [(f"NPPP P={p}", "neural", p), (f"floor P={p}", "cost-floor", p)]
+        configs += [(f"NPPP P={p}", "neural", p), (f"free exits P={p}", "free-exits", p),
+                    (f"floor P={p}", "cost-floor", p)]
     times = {c[0]: [] for c in configs}
     rates = {c[0]: [] for c in configs}
     with tempfile.TemporaryDirectory() as tmp:
@@ -65,7 +69,7 @@ def main():
                 t, s = render(a.nppp, a.scene, a.spp, mode, p, a.threads, out)
                 times[label].append(t)
                 rates[label].append(s)
-                print(f"round {r + 1} {label:<12} {t:7.2f} s {s:7.3f} M samples/s",
+                print(f"round {r + 1} {label:<16} {t:7.2f} s {s:7.3f} M samples/s",
                       file=sys.stderr)
     pt = statistics.median(times["PT"])
     print(f"\n{a.scene}, {a.spp} spp, {a.rounds} alternating rounds, median render time\n")

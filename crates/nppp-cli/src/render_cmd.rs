@@ -70,7 +70,11 @@ pub struct RenderArgs {
     /// nothing (plain path tracing). `cost-floor` is a timing instrument,
     /// not a render: the baked masks decide entries and every entry ends its
     /// path for free, so its time is a lower bound for any estimator using
-    /// those masks (the image is biased dark by design).
+    /// those masks (the image is biased dark by design). `free-exits`, the
+    /// other timing instrument: every entry goes on for free, straight
+    /// through the sphere with the training data's typical exit throughput
+    /// and bounce count, so its time is a neural render's with decoding
+    /// free (the gap between them is what the entries cost).
     #[arg(long, value_enum, default_value_t = EstimatorChoice::Auto)]
     pub estimators: EstimatorChoice,
     /// Next-event estimation through the estimator. `first`: sample the
@@ -153,6 +157,7 @@ pub enum EstimatorChoice {
     Neural,
     Oracle,
     CostFloor,
+    FreeExits,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -412,6 +417,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             );
             EstimatorMode::CostFloor
         }
+        EstimatorChoice::FreeExits => {
+            eprintln!(
+                "warning: --estimators free-exits answers every estimator entry with a free exit straight through the object: the image is not an estimate of the scene (timing only)"
+            );
+            EstimatorMode::FreeExits
+        }
     };
     if a.entry_nee != EntryNeeChoice::Off && (!has_estimators || mode == EstimatorMode::Off) {
         eprintln!(
@@ -427,11 +438,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         a.entry_nee,
         EntryNeeChoice::Picked | EntryNeeChoice::PickedLight
     );
-    if picked && mode == EstimatorMode::CostFloor {
+    if picked && matches!(mode, EstimatorMode::CostFloor | EstimatorMode::FreeExits) {
         bail!(
             "--entry-nee picked needs an estimator that returns a vertex of the skipped path: \
              --estimators oracle, or neural with files that have a vertex head; the cost floor \
-             returns none"
+             and free exits return none"
         );
     }
     let auto = a.estimators == EstimatorChoice::Auto;

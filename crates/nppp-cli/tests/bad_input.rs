@@ -750,7 +750,8 @@ fn absurd_flags_are_rejected_before_rendering() {
         &["--spp must be at least 1"],
     );
     // Next-event estimation through the estimator at a picked vertex needs
-    // an estimator that returns vertices: refused for the cost floor, and
+    // an estimator that returns vertices: refused for the cost floor and
+    // free exits, and
     // for an estimator file without a vertex head (named, with how to
     // rebuild it and the alternatives); an unknown mode is a usage error.
     render_fails(
@@ -758,6 +759,12 @@ fn absurd_flags_are_rejected_before_rendering() {
         &scene,
         &["--estimators", "cost-floor", "--entry-nee", "picked"],
         &["--entry-nee picked needs", "the cost floor"],
+    );
+    render_fails(
+        "entry-nee-picked-free-exits",
+        &scene,
+        &["--estimators", "free-exits", "--entry-nee", "picked"],
+        &["--entry-nee picked needs", "free exits return none"],
     );
     render_fails(
         "entry-nee-picked-no-vertex-head",

@@ -1,6 +1,7 @@
 //! Answering a wavefront step's estimator entries in batches: one decoder
 //! call per neural estimator ([`nppp_estimator::EstimatorSampler::sample_batch`]),
-//! one object walk per oracle entry, a free exit per cost-floor entry, and
+//! one object walk per oracle entry, a free exit per cost-floor or
+//! free-exits entry, and
 //! the skipped vertices next-event estimation through the estimator uses.
 //! The integrator gathers the entries ([`crate::estimator::Estimators::intersect`])
 //! and continues each path from its exit.
@@ -126,15 +127,16 @@ impl EntryBatch {
                         }
                     }
                 }
-                EstimatorModel::CostFloor { .. } => {
+                EstimatorModel::CostFloor { continue_with, .. } => {
+                    // Straight through, free: ending the path (zero
+                    // throughput) or going on with the typical exit's.
+                    let typical = continue_with.unwrap_or_default();
                     for &i in &self.rows {
                         let entry = &self.entries[i].1;
                         self.exits[i] = Exit {
                             position: entry.pair.exit(),
                             direction: entry.ray.dir,
-                            throughput: Vec3::ZERO,
-                            radiance: Vec3::ZERO,
-                            bounces: 0,
+                            ..typical
                         };
                     }
                 }

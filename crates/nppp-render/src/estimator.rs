@@ -36,12 +36,46 @@ pub enum EstimatorModel {
     /// integration independently of any network.
     Oracle { max_internal_bounces: u32 },
     /// A timing instrument, not an estimate: the baked estimator's mask
-    /// decides entries as in a neural render, and every entry ends its path
-    /// at no further cost (no latent lookup, no decoder, no continuation).
-    /// No estimator that uses this mask can render a sample faster, so its
-    /// time bounds what any network could gain on a scene. The image is
-    /// biased dark by design.
-    CostFloor { sampler: EstimatorSampler },
+    /// decides entries as in a neural render, and every entry is answered
+    /// at no cost (no latent lookup, no decoder).
+    ///
+    /// `continue_with: None` (`--estimators cost-floor`): the entry ends its
+    /// path. No estimator that uses this mask can render a sample faster,
+    /// so its time bounds what any network could gain on a scene; but a
+    /// real estimator's path goes on from its exit, so no real estimator
+    /// reaches it either. The image is biased dark by design.
+    ///
+    /// `continue_with: Some(exit)` (`--estimators free-exits`): the path
+    /// goes on from a free exit, straight through the sphere with the
+    /// training data's typical throughput and bounce count
+    /// ([`typical_exit`]), so it pays for what follows an exit as a real
+    /// estimator's path does. Its time is the render's with decoding free:
+    /// the gap to a neural render's time is what its entries cost. The
+    /// image is not an estimate of the scene.
+    CostFloor {
+        sampler: EstimatorSampler,
+        continue_with: Option<Exit>,
+    },
+}
+
+/// The exit a free-exits entry continues with (direction and position are
+/// the entry's own, straight through): the throughput and internal bounce
+/// count of the file's mean exit feature vector, decoded (the geometric
+/// mean of `1 + x` less 1, as the features store `ln(1 + x)`), and no
+/// radiance.
+pub fn typical_exit(sampler: &EstimatorSampler) -> Exit {
+    let t = &sampler.baked().transform;
+    let mut repairs = DecodeRepairs::default();
+    let e = t.decode(
+        &t.mean,
+        sampler.meta().max_internal_bounces,
+        sampler.bounds,
+        &mut repairs,
+    );
+    Exit {
+        radiance: Vec3::ZERO,
+        ..e
+    }
 }
 
 pub struct Estimator {
@@ -518,7 +552,7 @@ impl Estimators {
             EntryMask::Exact => true,
         };
         match &est.model {
-            EstimatorModel::Neural { sampler } | EstimatorModel::CostFloor { sampler }
+            EstimatorModel::Neural { sampler } | EstimatorModel::CostFloor { sampler, .. }
                 if !exact =>
             {
                 sampler.hits(pair)
@@ -545,6 +579,9 @@ pub enum EstimatorMode {
     /// The baked files' masks, every entry ending its path: see
     /// [`EstimatorModel::CostFloor`]. For timing only.
     CostFloor,
+    /// The baked files' masks, every entry going on from a free exit: see
+    /// [`EstimatorModel::CostFloor`]. For timing only.
+    FreeExits,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -684,10 +721,16 @@ impl Estimators {
                         SurfaceKind::Scatter(_) => 0.0,
                     };
                     sampler.bounds = nppp_estimator::ExitBounds::new(medium.is_some(), emitted);
-                    let model = if mode == EstimatorMode::CostFloor {
-                        EstimatorModel::CostFloor { sampler }
-                    } else {
-                        EstimatorModel::Neural { sampler }
+                    let model = match mode {
+                        EstimatorMode::CostFloor => EstimatorModel::CostFloor {
+                            sampler,
+                            continue_with: None,
+                        },
+                        EstimatorMode::FreeExits => EstimatorModel::CostFloor {
+                            continue_with: Some(typical_exit(&sampler)),
+                            sampler,
+                        },
+                        _ => EstimatorModel::Neural { sampler },
                     };
                     Estimator {
                         model,
@@ -758,7 +801,7 @@ impl Estimators {
         self.list
             .iter()
             .map(|e| match &e.model {
-                EstimatorModel::Neural { sampler } | EstimatorModel::CostFloor { sampler } => {
+                EstimatorModel::Neural { sampler } | EstimatorModel::CostFloor { sampler, .. } => {
                     sampler.memory_bytes()
                 }
                 EstimatorModel::Oracle { .. } => 0,

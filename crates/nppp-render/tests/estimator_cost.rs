@@ -2,8 +2,10 @@
 //! only show as a wrong timing: the cost floor (`EstimatorMode::CostFloor`,
 //! a timing instrument: the baked masks decide entries exactly as in a
 //! neural render and every entry ends its path; a floor that quietly
-//! continued its paths would make every bound drawn from it wrong), and the
-//! plain layout that rays no estimator can serve must trace.
+//! continued its paths would make every bound drawn from it wrong), free
+//! exits (`EstimatorMode::FreeExits`: the same entries, every path going on
+//! from a free exit, so that its time is a neural render's with decoding
+//! free), and the plain layout that rays no estimator can serve must trace.
 
 mod common;
 use common::*;
@@ -93,6 +95,53 @@ fn floor_uses_the_same_mask_as_the_network() {
     assert!(fs.estimators.entries > 0);
     assert_eq!(fs.estimators.entries, ns.estimators.entries);
     assert_eq!(fs.estimators.mask_skips, ns.estimators.mask_skips);
+}
+
+/// Free exits decide entries with the same mask and continue every path as
+/// a neural render does, without decoding: their paths go on (more entries
+/// and rays than the floor's, about as many as the network's) from exits
+/// straight through the sphere with the file's typical exit throughput.
+#[test]
+fn free_exits_continue_every_path_without_decoding() {
+    let (neural, ns) = render(EstimatorMode::Neural, 0);
+    let (floor, fs) = render(EstimatorMode::CostFloor, 0);
+    let (free, xs) = render(EstimatorMode::FreeExits, 0);
+    assert_eq!(xs.estimators.decoder_batches, 0);
+    assert_eq!(xs.estimators.decoder_rows, 0);
+    assert!(xs.estimators.entries > fs.estimators.entries);
+    assert!(xs.work.rays > fs.work.rays && xs.work.shadow_rays > fs.work.shadow_rays);
+    // The same camera rays and the same mask: the first entries are shared,
+    // and the continued paths make about as many more as the network's.
+    let ratio = xs.estimators.entries as f64 / ns.estimators.entries as f64;
+    assert!(
+        (0.8..1.25).contains(&ratio),
+        "free exits made {ratio} of the network's entries"
+    );
+    let typical = {
+        let scene =
+            nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-box.json")).unwrap();
+        let ests = Estimators::load(&scene, EstimatorMode::FreeExits, 0)
+            .unwrap()
+            .unwrap();
+        match &ests.list[0].model {
+            nppp_render::estimator::EstimatorModel::CostFloor { continue_with, .. } => {
+                continue_with.expect("free exits carry their exit")
+            }
+            _ => panic!("free exits load as the cost floor's model"),
+        }
+    };
+    // The knot is diffuse: some light goes on, none is created.
+    assert!(typical.throughput.min_element() > 0.0 && typical.throughput.max_element() <= 1.0);
+    assert_eq!(typical.radiance, glam::Vec3::ZERO);
+    // Lit like the network's image, unlike the floor's black knot.
+    assert!(mean(&free) > mean(&floor));
+    assert!(mean(&free) > 0.5 * mean(&neural));
+    assert!(
+        free.pixels
+            .iter()
+            .flatten()
+            .all(|v| v.is_finite() && *v >= 0.0)
+    );
 }
 
 /// Rays that cannot use an estimator trace the plain layout (the knot
