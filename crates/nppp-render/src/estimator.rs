@@ -60,14 +60,15 @@ pub enum EstimatorModel {
 
 /// The exit a free-exits entry continues with (direction and position are
 /// the entry's own, straight through): the throughput and internal bounce
-/// count of the file's mean exit feature vector, decoded (the geometric
-/// mean of `1 + x` less 1, as the features store `ln(1 + x)`), and no
+/// count of the training data's mean exit features, decoded (standardized
+/// features of zero are the data's means; as the features store
+/// `ln(1 + x)`, that is the geometric mean of `1 + x`, less 1), and no
 /// radiance.
 pub fn typical_exit(sampler: &EstimatorSampler) -> Exit {
     let t = &sampler.baked().transform;
     let mut repairs = DecodeRepairs::default();
     let e = t.decode(
-        &t.mean,
+        &[0.0; nppp_estimator::EXIT_FEATURES],
         sampler.meta().max_internal_bounces,
         sampler.bounds,
         &mut repairs,
