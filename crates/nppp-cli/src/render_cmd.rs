@@ -1,7 +1,7 @@
 //! `nppp render`.
 
 use anyhow::{Context, Result, bail};
-use clap::Args;
+use clap::{Args, ValueEnum};
 use nppp_render::estimator::{
     EntryMask, EntryNee, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
 };
@@ -438,11 +438,22 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         a.entry_nee,
         EntryNeeChoice::Picked | EntryNeeChoice::PickedLight
     );
-    if picked && matches!(mode, EstimatorMode::CostFloor | EstimatorMode::FreeExits) {
+    let instrument = matches!(mode, EstimatorMode::CostFloor | EstimatorMode::FreeExits);
+    if instrument && a.entry_nee != EntryNeeChoice::Off {
+        // They trace and decode nothing at an entry: no vertex to light,
+        // and a timing with the flag would leave out what it costs.
         bail!(
-            "--entry-nee picked needs an estimator that returns a vertex of the skipped path: \
-             --estimators oracle, or neural with files that have a vertex head; the cost floor \
-             and free exits return none"
+            "--entry-nee {} needs an estimator that answers its entries (--estimators neural \
+             or oracle): the cost floor and free exits trace and decode nothing at an entry, \
+             so they take no next-event estimation through it (give --entry-nee off)",
+            a.entry_nee
+                .to_possible_value()
+                .map_or_else(String::new, |v| v.get_name().to_string())
+        );
+    }
+    if instrument && a.decoder != DecoderChoice::Cpu {
+        eprintln!(
+            "warning: --decoder does nothing here: the cost floor and free exits decode nothing"
         );
     }
     let auto = a.estimators == EstimatorChoice::Auto;
@@ -480,6 +491,23 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             EntryMaskChoice::Exact => EntryMask::Exact,
         };
         attach_decoders(e, a.decoder)?;
+        if mode == EstimatorMode::FreeExits {
+            // What every entry continues with: a user timing the instrument
+            // sees what it stands for (and a file whose mean exit had to be
+            // clamped shows it).
+            for (name, est) in estimator_names(&scene, e).iter().zip(&e.list) {
+                if let EstimatorModel::CostFloor {
+                    continue_with: Some(x),
+                    ..
+                } = &est.model
+                {
+                    eprintln!(
+                        "free exits: {name} continues with throughput [{:.3} {:.3} {:.3}] after {} internal bounces",
+                        x.throughput.x, x.throughput.y, x.throughput.z, x.bounces
+                    );
+                }
+            }
+        }
     }
     let build = t0.elapsed().as_secs_f64();
     let opts = RenderOptions {

@@ -751,20 +751,28 @@ fn absurd_flags_are_rejected_before_rendering() {
     );
     // Next-event estimation through the estimator at a picked vertex needs
     // an estimator that returns vertices: refused for the cost floor and
-    // free exits, and
+    // free exits (as is any entry NEE: they answer entries with nothing), and
     // for an estimator file without a vertex head (named, with how to
     // rebuild it and the alternatives); an unknown mode is a usage error.
     render_fails(
         "entry-nee-picked-cost-floor",
         &scene,
         &["--estimators", "cost-floor", "--entry-nee", "picked"],
-        &["--entry-nee picked needs", "the cost floor"],
+        &[
+            "--entry-nee picked needs",
+            "the cost floor and free exits",
+            "--entry-nee off",
+        ],
     );
     render_fails(
-        "entry-nee-picked-free-exits",
+        "entry-nee-first-free-exits",
         &scene,
-        &["--estimators", "free-exits", "--entry-nee", "picked"],
-        &["--entry-nee picked needs", "free exits return none"],
+        &["--estimators", "free-exits", "--entry-nee", "first"],
+        &[
+            "--entry-nee first needs",
+            "the cost floor and free exits",
+            "--entry-nee off",
+        ],
     );
     render_fails(
         "entry-nee-picked-no-vertex-head",

@@ -129,11 +129,21 @@ impl MaskSignTable {
         }
     }
 
-    /// The fraction of blocks that are mixed (for tests and logs).
+    /// The fraction of the blocks a chord can reach that are mixed (for
+    /// tests and logs). On the clamped u axes cells go up to `res - 2`, so
+    /// with an odd resolution the last block of those axes holds no cell.
     pub fn mixed_fraction(&self) -> f64 {
-        let n = self.blocks.pow(4);
-        let mixed = (0..n).filter(|&k| (self.packed[k >> 2] >> ((k & 3) << 1)) & 3 == MIXED).count();
-        mixed as f64 / n as f64
+        let b = self.blocks;
+        let bu = (self.res - 1).div_ceil(FACTOR);
+        let (mut reachable, mut mixed) = (0usize, 0usize);
+        for (a, v1, u2, v2) in
+            (0..bu).flat_map(|a| (0..b).flat_map(move |v1| (0..bu).flat_map(move |u2| (0..b).map(move |v2| (a, v1, u2, v2)))))
+        {
+            let k = ((a * b + v1) * b + u2) * b + v2;
+            reachable += 1;
+            mixed += usize::from((self.packed[k >> 2] >> ((k & 3) << 1)) & 3 == MIXED);
+        }
+        mixed as f64 / reachable.max(1) as f64
     }
 
     pub fn memory_bytes(&self) -> usize {
