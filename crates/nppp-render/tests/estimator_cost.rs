@@ -12,9 +12,12 @@ use common::*;
 use nppp_render::estimator::{EstimatorMode, Estimators};
 use nppp_render::{RenderOptions, RenderScene, RenderStats};
 
+fn cornell_box() -> nppp_scene::Scene {
+    nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-box.json")).unwrap()
+}
+
 fn render(mode: EstimatorMode, p: u32) -> (nppp_render::Image, RenderStats) {
-    let mut scene =
-        nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-box.json")).unwrap();
+    let mut scene = cornell_box();
     scene.camera.width = 48;
     scene.camera.height = 48;
     let mut rs = RenderScene::for_estimators(&scene);
@@ -117,19 +120,18 @@ fn free_exits_continue_every_path_without_decoding() {
         (0.8..1.25).contains(&ratio),
         "free exits made {ratio} of the network's entries"
     );
-    let typical = {
-        let scene =
-            nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-box.json")).unwrap();
-        let ests = Estimators::load(&scene, EstimatorMode::FreeExits, 0)
-            .unwrap()
-            .unwrap();
-        match &ests.list[0].model {
-            nppp_render::estimator::EstimatorModel::CostFloor { continue_with, .. } => {
-                continue_with.expect("free exits carry their exit")
-            }
-            _ => panic!("free exits load as the cost floor's model"),
-        }
+    // The free-exits model keeps the file's sampler, the network's own.
+    let ests = Estimators::load(&cornell_box(), EstimatorMode::FreeExits, 0)
+        .unwrap()
+        .unwrap();
+    let nppp_render::estimator::EstimatorModel::CostFloor {
+        sampler,
+        continue_with,
+    } = &ests.list[0].model
+    else {
+        panic!("free exits load as the cost floor's model");
     };
+    let typical = continue_with.expect("free exits carry their exit");
     // The knot is diffuse: some light goes on, none is created.
     assert!(typical.throughput.min_element() > 0.0 && typical.throughput.max_element() <= 1.0);
     // And it is the network's typical exit: the geometric mean of 1 + the
@@ -137,14 +139,6 @@ fn free_exits_continue_every_path_without_decoding() {
     // (decoding the data's mean as if it were a standardized feature gave
     // too much throughput and too many bounces).
     let network_typical = {
-        let scene =
-            nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-box.json")).unwrap();
-        let ests = Estimators::load(&scene, EstimatorMode::Neural, 0)
-            .unwrap()
-            .unwrap();
-        let nppp_render::estimator::EstimatorModel::Neural { sampler } = &ests.list[0].model else {
-            panic!("a neural model");
-        };
         let mut rng = nppp_geom::SampleRng::from_seed(17);
         let pairs: Vec<nppp_geom::SpherePair> = (0..20_000)
             .map(|_| {
@@ -208,8 +202,7 @@ fn free_exits_continue_every_path_without_decoding() {
 /// estimators attached is bit for bit plain path tracing's.
 #[test]
 fn with_p_at_least_m_every_ray_traces_the_plain_layout() {
-    let mut scene =
-        nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-box.json")).unwrap();
+    let mut scene = cornell_box();
     scene.camera.width = 32;
     scene.camera.height = 32;
     let opts = RenderOptions {
