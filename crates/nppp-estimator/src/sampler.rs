@@ -144,10 +144,6 @@ impl EstimatorSampler {
         }
     }
 
-    /// The mask's sign table (see [`crate::mask_sign`]).
-    pub fn mask_sign(&self) -> &MaskSignTable {
-        &self.mask_sign
-    }
 
     /// The interpolated latent into `out[..latent_dim]`.
     #[inline]
