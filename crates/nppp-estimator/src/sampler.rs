@@ -144,7 +144,6 @@ impl EstimatorSampler {
         }
     }
 
-
     /// The interpolated latent into `out[..latent_dim]`.
     #[inline]
     pub fn latent(&self, pair: &SpherePair, out: &mut [f32]) {

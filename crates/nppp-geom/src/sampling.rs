@@ -22,13 +22,17 @@ pub fn concentric_disk(u: Vec2) -> Vec2 {
         return Vec2::ZERO;
     }
     // Both wedges need the sine and cosine of an angle in [-pi/4, pi/4]
-    // (the second's pi/2 - phi swaps them).
-    if o.x.abs() > o.y.abs() {
-        let (sin, cos) = sin_cos_quarter((PI / 4.0) * (o.y / o.x));
-        Vec2::new(o.x * cos, o.x * sin)
+    // (the second's pi/2 - phi swaps them). Written as selects around one
+    // evaluation: the wedge is a coin flip per sample, and a branch on it
+    // was mispredicted half the time.
+    let x_wedge = o.x.abs() > o.y.abs();
+    let (r, other) = if x_wedge { (o.x, o.y) } else { (o.y, o.x) };
+    let (sin, cos) = sin_cos_quarter((PI / 4.0) * (other / r));
+    let (along, across) = (r * cos, r * sin);
+    if x_wedge {
+        Vec2::new(along, across)
     } else {
-        let (sin, cos) = sin_cos_quarter((PI / 4.0) * (o.x / o.y));
-        Vec2::new(o.y * sin, o.y * cos)
+        Vec2::new(across, along)
     }
 }
 

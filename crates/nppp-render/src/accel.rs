@@ -323,10 +323,8 @@ impl Accel {
             .intersect(o.into(), d.into(), 0.0, tmax)?;
         // The last range starting at or before the hit triangle (ranges of
         // empty meshes share a start; the later one holds the triangles).
-        let r = self
-            .merged_ranges
-            .partition_point(|&(first, _)| first <= h.prim)
-            - 1;
+        let r =
+            crate::prefix::partition_point(&self.merged_ranges, |&(first, _)| first <= h.prim) - 1;
         let (first, instance) = self.merged_ranges[r];
         let prim = h.prim - first;
         Some(SceneHit {

@@ -22,6 +22,7 @@ pub mod medium;
 pub mod metrics;
 pub mod object_walk;
 pub mod path;
+mod prefix;
 pub mod render;
 pub mod render_part;
 pub mod scene_data;

@@ -101,9 +101,7 @@ impl Lights {
             return None;
         }
         let target = u_select as f64 * self.total;
-        let i = self
-            .cdf
-            .partition_point(|&c| c <= target)
+        let i = crate::prefix::partition_point(&self.cdf, |&c| c <= target)
             .min(self.triangles.len() - 1);
         let t = &self.triangles[i];
         let (b1, b2) = uniform_triangle(u);
