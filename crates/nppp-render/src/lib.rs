@@ -15,6 +15,7 @@ pub mod datagen;
 pub mod entry;
 pub mod estimator;
 pub mod film;
+mod huge_pages;
 pub mod image_io;
 pub mod integrator;
 pub mod lights;

@@ -31,7 +31,7 @@ pub struct RenderScene {
     /// Per instance: index of its first triangle in `lights.triangles` (emitters only).
     pub light_base: Vec<u32>,
     /// Per mesh: per-triangle vertex normals of smooth meshes.
-    pub shading_normals: Vec<Option<Vec<[Vec3; 3]>>>,
+    pub(crate) shading_normals: Vec<Option<crate::huge_pages::HugeArray<[Vec3; 3]>>>,
     /// Per mesh: unit object-space geometric normal of each triangle.
     pub geo_normals: Vec<Vec<Vec3>>,
     /// Per instance: absolute floor for ray offsets off its surface, relative
@@ -185,7 +185,11 @@ impl RenderScene {
             shading_normals: scene
                 .meshes
                 .iter()
-                .map(|m| m.shading_normals.clone())
+                .map(|m| {
+                    m.shading_normals
+                        .clone()
+                        .map(crate::huge_pages::HugeArray::new)
+                })
                 .collect(),
             geo_normals,
             accel,

@@ -31,6 +31,8 @@ use std::ops::Range;
 use std::time::Duration;
 use wide::f32x8;
 
+use crate::huge_pages::HugeArray;
+
 /// Mesh leaves hold at most this many triangles (two packets).
 const MESH_LEAF_MAX: u32 = 8;
 /// TLAS leaves hold one instance: its box is tested before its BLAS is
@@ -89,7 +91,7 @@ pub struct MeshHit {
 
 /// Nodes of an 8-wide tree; what its leaves hold is its owner's business.
 struct Tree {
-    nodes: Vec<Node>,
+    nodes: HugeArray<Node>,
     /// Code of the root: node 0, or `EMPTY` for no input.
     root: u32,
     /// Deepest level of the tree (the root is level 1); sizes the stack.
@@ -99,7 +101,7 @@ struct Tree {
 /// The 8-wide BVH of one mesh. Empty meshes have no nodes and never hit.
 pub struct MeshBvh {
     tree: Tree,
-    packets: Vec<Tri4>,
+    packets: HugeArray<Tri4>,
 }
 
 /// The TLAS: an 8-wide BVH over instance boxes.
@@ -338,7 +340,10 @@ impl MeshBvh {
                 (first, packets.len() - first)
             })
         };
-        Self { tree, packets }
+        Self {
+            tree,
+            packets: HugeArray::new(packets),
+        }
     }
 
     /// Closest hit along a ray with unit direction in (tmin, tmax).
@@ -511,7 +516,7 @@ pub fn leaf_visits() -> u64 {
 impl Tree {
     fn empty() -> Self {
         Self {
-            nodes: vec![],
+            nodes: HugeArray::new(vec![]),
             root: EMPTY,
             depth: 0,
         }
@@ -718,7 +723,7 @@ impl<'a> Collapser<'a> {
             self.inner(0, sink)
         };
         Tree {
-            nodes: self.nodes,
+            nodes: HugeArray::new(self.nodes),
             root,
             depth: self.depth,
         }
