@@ -717,6 +717,9 @@ impl Estimators {
                         });
                     }
                     let mut sampler = EstimatorSampler::try_new(baked).map_err(file_err)?;
+                    // Every entry reads 16 scattered nodes of each grid.
+                    crate::huge_pages::collapse(&sampler.baked().latent.data);
+                    crate::huge_pages::collapse(&sampler.baked().mask.data);
                     let emitted = match surface {
                         SurfaceKind::Emitter { radiance } => radiance.max_element(),
                         SurfaceKind::Scatter(_) => 0.0,
