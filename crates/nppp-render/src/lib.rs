@@ -4,7 +4,8 @@
 //! inside translucent objects, object walks
 //! (training data and the oracle), the exact film and render parts (a render
 //! split by sample range over machines, merged bit for bit), error metrics,
-//! and image output.
+//! image output, and huge-page backing for the large arrays rays read at
+//! random (BVHs, shading normals, estimator grids).
 
 pub mod accel;
 pub mod auto;
