@@ -154,7 +154,11 @@ impl Wavefront {
                 };
                 match next {
                     Next::Continue => {
-                        self.paths.swap(w, r);
+                        // Slots w..r hold finished paths (their radiance
+                        // is in the film): overwrite one, no swap needed.
+                        if w != r {
+                            self.paths[w] = self.paths[r].clone();
+                        }
                         w += 1;
                     }
                     Next::Terminate => {
