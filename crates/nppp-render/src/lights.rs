@@ -96,6 +96,7 @@ impl Lights {
 
     /// Samples a point on a light as seen from `p`; `None` if the point is on
     /// the light's back side or degenerate.
+    #[inline]
     pub fn sample(&self, p: Vec3, u_select: f32, u: Vec2) -> Option<LightSample> {
         if self.is_empty() {
             return None;
