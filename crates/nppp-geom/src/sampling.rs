@@ -5,17 +5,23 @@ use glam::{Vec2, Vec3};
 use std::f32::consts::{FRAC_1_PI, PI, TAU};
 
 /// Cosine-weighted hemisphere around +z (Malley's method over a concentric disk).
+///
+/// `#[inline]` here and on the other per-bounce samplers: without it the
+/// renderer (another crate, built without LTO) calls them out of line.
+#[inline]
 pub fn cosine_hemisphere(u: Vec2) -> Vec3 {
     let d = concentric_disk(u);
     let z = (1.0 - d.length_squared()).max(0.0).sqrt();
     Vec3::new(d.x, d.y, z)
 }
 
+#[inline]
 pub fn cosine_hemisphere_pdf(cos_theta: f32) -> f32 {
     cos_theta.max(0.0) * FRAC_1_PI
 }
 
 /// Shirley-Chiu concentric map: area preserving, low distortion.
+#[inline]
 pub fn concentric_disk(u: Vec2) -> Vec2 {
     let o = u * 2.0 - Vec2::ONE;
     if o.x == 0.0 && o.y == 0.0 {
@@ -59,6 +65,7 @@ pub fn uniform_sphere(u: Vec2) -> Vec3 {
 pub const UNIFORM_SPHERE_PDF: f32 = 1.0 / (4.0 * PI);
 
 /// Uniform barycentrics on a triangle (Heitz's low-distortion square-to-triangle map).
+#[inline]
 pub fn uniform_triangle(u: Vec2) -> (f32, f32) {
     let (mut b0, mut b1);
     if u.x < u.y {
