@@ -19,6 +19,10 @@ use std::ops::Deref;
 /// caches anyway).
 const MIN_BYTES: usize = 4 << 20;
 
+/// The huge page size (x86-64 and AArch64 with 4 KiB base pages).
+#[cfg(target_os = "linux")]
+const HUGE: usize = 2 << 20;
+
 /// A read-only array, in its own huge-page-advised mapping when large.
 pub(crate) enum HugeArray<T: Copy> {
     Plain(Vec<T>),
@@ -43,16 +47,26 @@ impl<T: Copy> HugeArray<T> {
     /// `items`, moved into a huge-page-advised mapping when it is large
     /// enough and the platform has one (else kept as it is).
     pub(crate) fn new(items: Vec<T>) -> Self {
-        let bytes = std::mem::size_of_val(items.as_slice());
-        if bytes < MIN_BYTES {
-            return Self::Plain(items);
+        match Self::mapped(&items) {
+            Some(a) => a,
+            None => Self::Plain(items),
         }
-        Self::mapped(items, bytes)
     }
 
+    /// A copy of `items`, as [`HugeArray::new`] would hold it, without
+    /// first copying them into a vector of their own.
+    pub(crate) fn from_slice(items: &[T]) -> Self {
+        Self::mapped(items).unwrap_or_else(|| Self::Plain(items.to_vec()))
+    }
+
+    /// `items` copied into a fresh mapping advised for huge pages; `None`
+    /// when they are too small to be worth one, or no mapping was made.
     #[cfg(target_os = "linux")]
-    fn mapped(items: Vec<T>, bytes: usize) -> Self {
-        const HUGE: usize = 2 << 20;
+    fn mapped(items: &[T]) -> Option<Self> {
+        let bytes = std::mem::size_of_val(items);
+        if bytes < MIN_BYTES {
+            return None;
+        }
         // Room to start the array on a 2 MiB boundary, so that all of it
         // can be huge pages.
         let map_bytes = bytes + HUGE;
@@ -69,7 +83,7 @@ impl<T: Copy> HugeArray<T> {
             )
         };
         if base == libc::MAP_FAILED {
-            return Self::Plain(items);
+            return None;
         }
         let aligned = (base as usize).next_multiple_of(HUGE);
         // SAFETY: [base, base + map_bytes) is the mapping just made, and
@@ -82,17 +96,17 @@ impl<T: Copy> HugeArray<T> {
             libc::madvise(aligned as *mut libc::c_void, bytes, libc::MADV_HUGEPAGE);
             std::ptr::copy_nonoverlapping(items.as_ptr(), aligned as *mut T, items.len());
         }
-        Self::Mapped {
+        Some(Self::Mapped {
             ptr: aligned as *const T,
             len: items.len(),
             base,
             map_bytes,
-        }
+        })
     }
 
     #[cfg(not(target_os = "linux"))]
-    fn mapped(items: Vec<T>, _bytes: usize) -> Self {
-        Self::Plain(items)
+    fn mapped(_items: &[T]) -> Option<Self> {
+        None
     }
 }
 
@@ -107,7 +121,6 @@ pub(crate) fn collapse(bytes: &[u8]) {
     }
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
-        const HUGE: usize = 2 << 20;
         let start = (bytes.as_ptr() as usize).next_multiple_of(HUGE);
         let end = (bytes.as_ptr() as usize + bytes.len()) / HUGE * HUGE;
         if end > start {
@@ -167,6 +180,7 @@ mod tests {
                 .collect();
             let a = HugeArray::new(v.clone());
             assert_eq!(&a[..], &v[..]);
+            assert_eq!(&HugeArray::from_slice(&v)[..], &v[..]);
             assert_eq!(a.as_ptr() as usize % std::mem::align_of::<u32>(), 0);
         }
     }

@@ -187,8 +187,8 @@ impl RenderScene {
                 .iter()
                 .map(|m| {
                     m.shading_normals
-                        .clone()
-                        .map(crate::huge_pages::HugeArray::new)
+                        .as_deref()
+                        .map(crate::huge_pages::HugeArray::from_slice)
                 })
                 .collect(),
             geo_normals,

@@ -43,6 +43,15 @@ const INSTANCE_LEAF_MAX: u32 = 1;
 const LEAF: u32 = 1 << 31;
 const COUNT_SHIFT: u32 = 28;
 const FIRST_MASK: u32 = (1 << COUNT_SHIFT) - 1;
+
+/// The payload range (triangle packets or items) of leaf code `code`.
+#[inline(always)]
+fn leaf_items(code: u32) -> Range<usize> {
+    let first = (code & FIRST_MASK) as usize;
+    let count = ((code & !LEAF) >> COUNT_SHIFT) as usize + 1;
+    first..first + count
+}
+
 /// An unused child slot (its box is empty, so it is never entered).
 const EMPTY: u32 = u32::MAX;
 /// Children per node: eight, tested in one 8-lane pass per axis.
@@ -579,11 +588,9 @@ impl Tree {
         } else {
             // Every packet of the leaf (a packet is 160 bytes, so even one
             // spans three lines).
-            let count = ((code & !LEAF) >> COUNT_SHIFT) as usize + 1;
-            let addr = payload
-                .base
-                .wrapping_add((code & FIRST_MASK) as usize * payload.stride);
-            prefetch_range(addr, count * payload.stride);
+            let items = leaf_items(code);
+            let addr = payload.base.wrapping_add(items.start * payload.stride);
+            prefetch_range(addr, items.len() * payload.stride);
         }
     }
 
@@ -639,10 +646,8 @@ impl Tree {
                     continue;
                 }
             } else {
-                let first = (code & FIRST_MASK) as usize;
-                let count = ((code & !LEAF) >> COUNT_SHIFT) as usize + 1;
                 visits[1] += 1;
-                if leaf(first..first + count, tmax) == Visit::Stop {
+                if leaf(leaf_items(code), tmax) == Visit::Stop {
                     return;
                 }
             }
