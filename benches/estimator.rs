@@ -11,7 +11,8 @@
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use nppp_estimator::{
-    BakedEstimator, DecodeRepairs, EXIT_FEATURES, EstimatorSampler, ExitBatch, ExitDecoder,
+    BakedEstimator, CpuDecoder, DecodeRepairs, EXIT_FEATURES, EstimatorSampler, ExitBatch,
+    ExitDecoder, KernelIsa,
 };
 use nppp_geom::{SampleRng, SpherePair};
 use nppp_nn::BackendKind;
@@ -74,9 +75,7 @@ fn grids(c: &mut Criterion) {
 
 /// The decoder backends a render can pick (`--decoder`), on a CPU.
 fn backends(s: &EstimatorSampler) -> Vec<Box<dyn ExitDecoder>> {
-    let mut list: Vec<Box<dyn ExitDecoder>> = vec![Box::new(nppp_estimator::CpuDecoder::new(
-        &s.baked().decoder,
-    ))];
+    let mut list: Vec<Box<dyn ExitDecoder>> = vec![Box::new(CpuDecoder::new(&s.baked().decoder))];
     for backend in [BackendKind::Ndarray, BackendKind::Flex] {
         list.push(Box::new(
             BurnDecoder::new(&s.baked().decoder, backend).expect("burn decoder"),
@@ -164,9 +163,21 @@ fn decoder_sizes(c: &mut Criterion) {
             .file_stem()
             .map_or("?".into(), |s| s.to_string_lossy().into_owned());
         g.bench_function(
-            BenchmarkId::new(name, format!("{macs}_multiply_adds")),
+            BenchmarkId::new(&name, format!("{macs}_multiply_adds")),
             |b| b.iter(|| s.cpu_decoder().forward(&input, &mut out)),
         );
+        // The same product on each instruction set this CPU has (the
+        // default above is the widest).
+        for isa in KernelIsa::available() {
+            let dec = CpuDecoder::with_isa(&s.baked().decoder, isa);
+            g.bench_function(
+                BenchmarkId::new(
+                    format!("{name}_{}", isa.name()),
+                    format!("{macs}_multiply_adds"),
+                ),
+                |b| b.iter(|| dec.forward(&input, &mut out)),
+            );
+        }
     }
     g.finish();
 }

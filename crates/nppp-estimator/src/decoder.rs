@@ -7,6 +7,7 @@
 //! fallback when a backend fails) is [`EstimatorSampler::sample_batch`]'s
 //! and the same for every backend.
 
+use crate::dense_kernel::{KernelIsa, PackedLayer};
 use crate::exit::EXIT_FEATURES;
 use crate::mlp::Mlp;
 
@@ -22,108 +23,71 @@ pub trait ExitDecoder: Send + Sync {
     fn name(&self) -> &str;
 }
 
-/// The decoder in plain Rust: each layer one matrix product.
+/// The decoder in plain Rust: each layer one blocked matrix product
+/// ([`crate::dense_kernel`]) on weights packed when the estimator loads.
 #[derive(Clone, Debug)]
 pub struct CpuDecoder {
-    layers: Vec<CpuLayer>,
-    inputs: usize,
-    /// The widest row any layer reads or writes.
-    width: usize,
-}
-
-/// A decoder layer stored `[inputs][outputs]` (the transpose of
-/// [`crate::Dense`]): row-major for `C = A * W^T` with no transposition in
-/// the product.
-#[derive(Clone, Debug)]
-struct CpuLayer {
+    layers: Vec<PackedLayer>,
     inputs: usize,
     outputs: usize,
-    weight_t: Vec<f32>,
-    bias: Vec<f32>,
-    relu: bool,
+    /// The widest padded row any layer writes.
+    stride: usize,
+    isa: KernelIsa,
 }
 
 impl CpuDecoder {
     /// `mlp` must pass [`Mlp::validate`] (the sampler checks it first).
+    /// Runs on the widest instruction set this CPU has.
     pub fn new(mlp: &Mlp) -> Self {
-        let last = mlp.layers.len().saturating_sub(1);
-        let layers: Vec<CpuLayer> = mlp
-            .layers
-            .iter()
-            .enumerate()
-            .map(|(li, l)| {
-                let mut weight_t = vec![0.0; l.inputs * l.outputs];
-                for o in 0..l.outputs {
-                    for i in 0..l.inputs {
-                        weight_t[i * l.outputs + o] = l.weight[o * l.inputs + i];
-                    }
-                }
-                CpuLayer { inputs: l.inputs, outputs: l.outputs, weight_t, bias: l.bias.clone(), relu: li < last }
-            })
-            .collect();
-        let inputs = mlp.inputs();
-        let width = layers.iter().map(|l| l.outputs).max().unwrap_or(0).max(inputs);
-        Self { layers, inputs, width }
+        Self::with_isa(mlp, KernelIsa::detect())
     }
 
-    /// The decoder on the rows of `input` (as many as both slices hold).
+    /// On a given instruction set (one of [`KernelIsa::available`]): for
+    /// tests and benchmarks.
+    pub fn with_isa(mlp: &Mlp, isa: KernelIsa) -> Self {
+        let last = mlp.layers.len().saturating_sub(1);
+        let layers: Vec<PackedLayer> =
+            mlp.layers.iter().enumerate().map(|(li, l)| PackedLayer::new(l.inputs, l.outputs, &l.weight, &l.bias, li < last)).collect();
+        let stride = layers.iter().map(|l| l.padded).max().unwrap_or(0);
+        Self { layers, inputs: mlp.inputs(), outputs: mlp.outputs(), stride, isa }
+    }
+
+    /// The instruction set its products run on.
+    pub fn isa(&self) -> KernelIsa {
+        self.isa
+    }
+
+    /// The decoder on the rows of `input` (as many as both slices hold:
+    /// `inputs` floats in, the last layer's outputs out, per row).
     ///
-    /// Each layer runs as one matrix product (`matrixmultiply`, which picks
-    /// AVX/FMA kernels at run time): several times faster than row by row on
-    /// the wavefront's batches of hundreds of entries. Every batch, however
-    /// small, takes this path, so each row's result does not depend on the
-    /// other rows of its batch nor on their number: a render's pixels are
-    /// the same bits however its entries batch up (thread counts, render
-    /// shards that split a tile's samples differently). Equal to
-    /// [`Mlp::forward_batch`] within float rounding (the sums run in another
-    /// order), not bit for bit.
+    /// Every batch, however small, takes the same kernel, whose result for
+    /// a row does not depend on the other rows of its batch nor on their
+    /// number: a render's pixels are the same bits however its entries
+    /// batch up (thread counts, render shards that split a tile's samples
+    /// differently). Equal to [`Mlp::forward_batch`] within float rounding
+    /// (fused multiply-adds where the CPU has them), not bit for bit.
     pub fn forward(&self, input: &[f32], output: &mut [f32]) {
-        let n = self.inputs;
-        if n == 0 {
+        let (n, m) = (self.inputs, self.outputs);
+        if n == 0 || m == 0 {
             return;
         }
-        let rows = (input.len() / n).min(output.len() / EXIT_FEATURES);
+        let rows = (input.len() / n).min(output.len() / m);
         if rows == 0 {
             return;
         }
-        let mut a = vec![0.0f32; rows * self.width];
-        let mut b = vec![0.0f32; rows * self.width];
-        a[..rows * n].copy_from_slice(&input[..rows * n]);
-        for l in &self.layers {
-            let (k, m) = (l.inputs, l.outputs);
-            let c = &mut b[..rows * m];
-            for row in c.chunks_exact_mut(m) {
-                row.copy_from_slice(&l.bias);
-            }
-            // C (rows x m) += A (rows x k) * W^T (k x m), all row-major.
-            // SAFETY: `a` holds rows x k floats (the previous layer's
-            // outputs or the input), `weight_t` k x m, `c` rows x m; the
-            // strides below describe exactly those dense row-major layouts,
-            // and `c` does not alias `a` or the weights.
-            unsafe {
-                matrixmultiply::sgemm(
-                    rows,
-                    k,
-                    m,
-                    1.0,
-                    a.as_ptr(),
-                    k as isize,
-                    1,
-                    l.weight_t.as_ptr(),
-                    m as isize,
-                    1,
-                    1.0,
-                    c.as_mut_ptr(),
-                    m as isize,
-                    1,
-                );
-            }
-            if l.relu {
-                c.iter_mut().for_each(|v| *v = v.max(0.0));
-            }
+        let mut a = vec![0.0f32; rows * self.stride];
+        let mut b = vec![0.0f32; rows * self.stride];
+        let (first, rest) = self.layers.split_first().expect("a validated decoder has layers");
+        first.forward(self.isa, &input[..rows * n], n, rows, &mut a);
+        let mut a_stride = first.padded;
+        for l in rest {
+            l.forward(self.isa, &a, a_stride, rows, &mut b);
+            a_stride = l.padded;
             std::mem::swap(&mut a, &mut b);
         }
-        output[..rows * EXIT_FEATURES].copy_from_slice(&a[..rows * EXIT_FEATURES]);
+        for (out, row) in output[..rows * m].chunks_exact_mut(m).zip(a.chunks_exact(a_stride)) {
+            out.copy_from_slice(&row[..m]);
+        }
     }
 }
 

@@ -10,6 +10,7 @@
 pub mod baked;
 pub mod dataset;
 pub mod decoder;
+pub mod dense_kernel;
 pub mod exit;
 pub mod grid;
 pub mod mask_sign;
@@ -29,6 +30,7 @@ pub const SPHERE_MARGIN: f32 = 0.01;
 pub use baked::{BakedEstimator, EstimatorFileError, EstimatorMeta, VertexHead};
 pub use dataset::{DatasetError, DatasetHeader, DatasetReader, DatasetSummary, DatasetWriter, RayRecord, WriterOptions};
 pub use decoder::{CpuDecoder, ExitDecoder};
+pub use dense_kernel::KernelIsa;
 pub use exit::{
     DecodeRepairs, EXIT_FEATURES, EXIT_THROUGHPUT_BOUND, EXIT_THROUGHPUT_BOUND_MEDIUM, Exit, ExitBounds, ExitTransform,
     exit_throughput_bound,
