@@ -77,16 +77,21 @@ pub const COST_PER_SHADOW_RAY: f64 = 2.7;
 /// 90 ns and decoder 450 ns of 890 ns, BENCHMARKS.md "cornell-glass"), so
 /// that a smaller or larger decoder, and a vertex head's second row, are
 /// counted by what they compute: 7.0 (this) + 1.1 (the row) + 7.9 (its
-/// 11,072 multiply-adds) + 1.8 (16 normals) = 17.8 for such an entry.
+/// 11,072 multiply-adds) + 1.8 (16 normals) = 17.8 for such an entry, with
+/// `matrixmultiply` as the decoder's kernel. Its own kernel
+/// (`nppp_estimator::dense_kernel`) made a row's fixed part 0.15x and a
+/// multiply-add 0.70x as costly (the two decoder sizes' criterion times,
+/// `estimator_decoder_rows`, on one CPU): 0.17 + 5.5 for that row now.
 pub const COST_PER_ENTRY: f64 = 7.0;
 /// The part of a decoder row's time that does not grow with its size (the
-/// matrix products' per-row overhead): a 128-row batch of the
-/// 3,488-multiply-add decoder took 0.40x the time of the 11,072 one's, not
-/// 0.32x (`estimator_decoder_rows`, BENCHMARKS.md "Smaller decoders").
-pub const COST_PER_DECODER_ROW: f64 = 1.1;
-/// One multiply-add of a decoder row: the decoder's 450 ns (9.0 units)
-/// less the row's fixed part, over the 11,072 multiply-adds it did.
-pub const COST_PER_DECODER_MULTIPLY_ADD: f64 = 7.9 / 11_072.0;
+/// per-row overhead of the products): from the times of a 128-row batch of
+/// the 3,488- and the 11,072-multiply-add decoders (`estimator_decoder_rows`,
+/// 8.9 us and 26.0 us; BENCHMARKS.md "The decoder kernel").
+pub const COST_PER_DECODER_ROW: f64 = 0.17;
+/// One multiply-add of a decoder row: 0.70x the 7.9 units per 11,072 that
+/// `matrixmultiply` took (the slope between the two decoder sizes, 17.5 ps
+/// against 24.9 ps a multiply-add on one core).
+pub const COST_PER_DECODER_MULTIPLY_ADD: f64 = 5.5 / 11_072.0;
 /// One standard normal of a decoder row's noise (the ziggurat).
 pub const COST_PER_DECODER_NORMAL: f64 = 0.1125;
 /// A ray whose chord the mask judged a miss (the chord's coordinates and a
@@ -950,14 +955,21 @@ mod tests {
             }
             work_cost(&work, &st)
         };
+        // The fitted 17.8 with the decoder's row rescaled from 9.0 (1.1 +
+        // 7.9 with matrixmultiply) to its own kernel's 5.67.
         assert!(
-            (entry(11_072, 16, 1) - 17.8).abs() < 0.01,
+            (entry(11_072, 16, 1) - (17.8 - 9.0 + 5.67)).abs() < 0.01,
             "{}",
             entry(11_072, 16, 1)
         );
-        // A vertex head of the same size: its row, as the fit's 11 units.
-        assert!((entry(11_072, 16, 2) - entry(11_072, 16, 1) - 10.8).abs() < 0.01);
-        assert!(entry(3_488, 16, 1) < 0.7 * entry(11_072, 16, 1));
+        // A vertex head of the same size: its row and its noise.
+        assert!((entry(11_072, 16, 2) - entry(11_072, 16, 1) - (5.67 + 1.8)).abs() < 0.01);
+        // A smaller decoder saves what its multiply-adds cost.
+        let saved = entry(11_072, 16, 1) - entry(3_488, 16, 1);
+        assert!(
+            (saved - 5.5 * (11_072.0 - 3_488.0) / 11_072.0).abs() < 0.01,
+            "{saved}"
+        );
         assert!(entry(3_488, 8, 1) < entry(3_488, 16, 1));
     }
 
