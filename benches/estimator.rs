@@ -6,8 +6,9 @@
 //! (`EstimatorSampler::sample_batch`: latent lookup, noise, decoder, inverse
 //! transform) and the decoder backends alone (`ExitDecoder::decode`): the
 //! plain-Rust CPU decoder and Burn's CPU backends; and the 16 standard
-//! normals an entry draws for the decoder's noise (`SampleRng::normal`, the
-//! ziggurat, against the Box-Muller it replaced).
+//! normals an entry draws for the decoder's noise (`SampleRng::normal`, a
+//! 32-bit ziggurat, against `rand_distr`'s 64-bit one and Box-Muller, which
+//! it replaced).
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use nppp_estimator::{
@@ -182,8 +183,8 @@ fn decoder_sizes(c: &mut Criterion) {
     g.finish();
 }
 
-/// Box-Muller as `SampleRng::normal` drew before it used the ziggurat
-/// (one of the pair discarded): the bench's reference.
+/// Box-Muller as `SampleRng::normal` drew before it used a ziggurat (one
+/// of the pair discarded): the bench's other reference.
 fn box_muller(rng: &mut SampleRng) -> f32 {
     let u1 = 1.0 - rng.uniform();
     let u2 = rng.uniform();
@@ -198,6 +199,17 @@ fn noise(c: &mut Criterion) {
     g.bench_function("ziggurat", |b| {
         b.iter(|| {
             out.iter_mut().for_each(|x| *x = rng.normal());
+            out[15]
+        })
+    });
+    // rand_distr's StandardNormal for f32, which SampleRng::normal used
+    // before: an f64 ziggurat on a 64-bit draw (two PCG32 steps).
+    g.bench_function("rand_distr_f64_ziggurat", |b| {
+        use rand::{Rng, SeedableRng};
+        let mut pcg = rand_pcg::Pcg32::seed_from_u64(7);
+        b.iter(|| {
+            out.iter_mut()
+                .for_each(|x| *x = pcg.sample::<f32, _>(rand_distr::StandardNormal));
             out[15]
         })
     });

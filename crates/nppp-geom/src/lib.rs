@@ -9,6 +9,7 @@ pub mod frame;
 pub mod rng;
 pub mod sampling;
 pub mod sphere_pair;
+pub mod ziggurat;
 
 pub use frame::Frame;
 pub use glam::{Vec2, Vec3};

@@ -45,17 +45,15 @@ impl SampleRng {
         glam::Vec2::new(a, b)
     }
 
-    /// A standard normal variate: `rand_distr`'s ziggurat, one 64-bit draw
-    /// and a table lookup almost every time. Every estimator entry draws
-    /// 16 of these for the decoder's noise; Box-Muller (a logarithm, a
-    /// square root and a cosine each) was 3% of a P = 0 render on
-    /// cornell-glass (perf). The ziggurat draws 16 in 89 ns against 289 ns
-    /// (`cargo bench --bench estimator -- noise`), an entry's latent lookup,
-    /// noise and decoding take 618 ns against 807 ns (`estimator_sample_batch`,
-    /// 1024 rows), and cornell-glass at P = 0 renders in 0.96x the time.
+    /// A standard normal variate: a ziggurat on one 32-bit draw almost
+    /// every time ([`crate::ziggurat`]). Every estimator entry draws 16 of
+    /// these per decoder row for the decoder's noise: Box-Muller (a
+    /// logarithm, a square root and a cosine each) was 3% of a P = 0 render
+    /// on cornell-glass, `rand_distr`'s 64-bit ziggurat 1.7% of a P = 1
+    /// render of the default scene (perf).
     #[inline]
     pub fn normal(&mut self) -> f32 {
-        self.0.sample(rand_distr::StandardNormal)
+        crate::ziggurat::standard_normal(|| self.0.next_u32())
     }
 
     pub fn next_u64(&mut self) -> u64 {

@@ -75,8 +75,12 @@ fn the_decision_is_the_same_at_any_thread_count_and_turns_off_a_losing_estimator
     }
     let knot = &one.estimators[0];
     assert_eq!(knot.choice, None, "{:?}", knot.trials);
+    // Every configuration measured below the margin a choice needs (with
+    // the decoder's own kernel P = 1 with picked NEE is within a few
+    // percent of PT here, 0.93x at equal error in a full render).
+    let margin = PilotOptions::default().margin;
     assert!(
-        knot.trials.iter().all(|t| t.efficiency < 1.0),
+        knot.trials.iter().all(|t| t.efficiency < margin),
         "{:?}",
         knot.trials
     );
