@@ -104,6 +104,15 @@ struct Axis {
     w: [f32; 2],
 }
 
+/// The 16 grid nodes a quadrilinear lookup blends and their weights
+/// ([`QuantizedGrid::corners`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Corners {
+    res: u32,
+    nodes: [usize; 16],
+    weights: [f32; 16],
+}
+
 /// Clamped axis; NaN is treated as 0 so a broken ray still gets a finite
 /// answer instead of a panic or an out-of-bounds read.
 #[inline(always)]
@@ -219,45 +228,72 @@ impl QuantizedGrid {
     /// out of bounds.
     #[inline]
     pub fn interpolate(&self, pair: &SpherePair, out: &mut [f32]) {
-        let s = self.res as usize;
-        let ch = self.channels as usize;
-        let out = &mut out[..ch];
-        let [u1, v1, u2, v2] = pair.0;
-        let (a1, b1, a2, b2) = (u_axis(u1, s), v_axis(v1, s), u_axis(u2, s), v_axis(v2, s));
-        let (s2, s3) = (s * s, s * s * s);
+        let corners = self.corners(pair);
         // All 16 corners first, so their cache lines can be fetched in
         // parallel: on a 16 MiB grid with incoherent rays, memory latency,
         // not arithmetic, is the cost of a lookup.
-        let mut nodes = [0usize; 16];
-        let mut ws = [0.0f32; 16];
+        self.prefetch(&corners);
+        self.blend(&corners, out);
+    }
+
+    /// The 16 nodes a quadrilinear lookup at `pair` blends and their
+    /// weights (u clamped, v wrapped, NaN counted as 0): the first half of
+    /// [`Self::interpolate`], for callers that fetch a batch's corners
+    /// before blending any ([`Self::prefetch`], [`Self::blend`]).
+    #[inline]
+    pub fn corners(&self, pair: &SpherePair) -> Corners {
+        let s = self.res as usize;
+        let [u1, v1, u2, v2] = pair.0;
+        let (a1, b1, a2, b2) = (u_axis(u1, s), v_axis(v1, s), u_axis(u2, s), v_axis(v2, s));
+        let (s2, s3) = (s * s, s * s * s);
+        let mut c = Corners { res: self.res, nodes: [0; 16], weights: [0.0; 16] };
         let mut k = 0;
         for a in 0..2 {
             for b in 0..2 {
                 let w_ab = a1.w[a] * b1.w[b];
                 let n_ab = a1.i[a] * s3 + b1.i[b] * s2;
-                for c in 0..2 {
-                    let w_abc = w_ab * a2.w[c];
-                    let n_abc = n_ab + a2.i[c] * s;
+                for cc in 0..2 {
+                    let w_abc = w_ab * a2.w[cc];
+                    let n_abc = n_ab + a2.i[cc] * s;
                     for d in 0..2 {
-                        ws[k] = w_abc * b2.w[d];
-                        nodes[k] = n_abc + b2.i[d];
+                        c.weights[k] = w_abc * b2.w[d];
+                        c.nodes[k] = n_abc + b2.i[d];
                         k += 1;
                     }
                 }
             }
         }
-        let bits = self.bits as usize;
-        for &n in &nodes {
+        c
+    }
+
+    /// Starts fetching the cache lines of `corners`' nodes and returns at
+    /// once.
+    #[inline]
+    pub fn prefetch(&self, corners: &Corners) {
+        let (ch, bits) = (self.channels as usize, self.bits as usize);
+        for &n in &corners.nodes {
             prefetch(&self.data, n * ch * bits / 8);
         }
+    }
+
+    /// The second half of [`Self::interpolate`]: `corners`' nodes blended
+    /// into `out[..channels]`. Panics if `out` is shorter or `corners` are
+    /// another resolution's.
+    #[inline]
+    pub fn blend(&self, corners: &Corners, out: &mut [f32]) {
+        assert_eq!(corners.res, self.res, "corners of a grid of another resolution");
+        let ch = self.channels as usize;
+        let out = &mut out[..ch];
+        let (nodes, ws) = (&corners.nodes, &corners.weights);
+        let bits = self.bits as usize;
         if self.bits == 8 {
             // Common widths get a fixed-size accumulator that stays in
             // registers and a fully unrolled, vectorized inner loop.
             match ch {
-                16 => return self.blend8::<16>(&nodes, &ws, out),
-                8 => return self.blend8::<8>(&nodes, &ws, out),
-                32 => return self.blend8::<32>(&nodes, &ws, out),
-                1 => return self.blend8::<1>(&nodes, &ws, out),
+                16 => return self.blend8::<16>(nodes, ws, out),
+                8 => return self.blend8::<8>(nodes, ws, out),
+                32 => return self.blend8::<32>(nodes, ws, out),
+                1 => return self.blend8::<1>(nodes, ws, out),
                 _ => {}
             }
         }
@@ -265,14 +301,14 @@ impl QuantizedGrid {
             // The default estimator's widths (16-channel latents, 1-channel
             // mask) at 4 bits, likewise.
             match ch {
-                16 => return self.blend4::<16, 8>(&nodes, &ws, out),
-                1 => return self.blend4_one(&nodes, &ws, out),
+                16 => return self.blend4::<16, 8>(nodes, ws, out),
+                1 => return self.blend4_one(nodes, ws, out),
                 _ => {}
             }
         }
         out.fill(0.0);
         let whole_bytes = (ch * bits).is_multiple_of(8);
-        for (&node, &w) in nodes.iter().zip(&ws) {
+        for (&node, &w) in nodes.iter().zip(ws) {
             match (self.bits, whole_bytes) {
                 (8, _) => {
                     let codes = &self.data[node * ch..node * ch + ch];
@@ -435,6 +471,30 @@ mod tests {
         let g = QuantizedGrid::from_f32(res, channels, &values, bits).unwrap();
         g.validate().unwrap();
         (values, g)
+    }
+
+    /// A lookup split in two (corners of a batch first, blends after, as
+    /// the renderer does) gives the interpolation's bits; corners of
+    /// another resolution are refused.
+    #[test]
+    fn corners_then_blend_is_the_interpolation() {
+        for (bits, channels) in [(4u8, 16u32), (4, 1), (8, 3), (2, 4)] {
+            let (_, g) = test_grid(5, channels, bits);
+            let pairs = [[0.37, 0.91, 0.62, 0.05], [0.0, 0.999, 1.0, 0.5], [f32::NAN, -0.2, 1.3, 7.25]];
+            let corners: Vec<Corners> = pairs.iter().map(|p| g.corners(&SpherePair(*p))).collect();
+            corners.iter().for_each(|c| g.prefetch(c));
+            for (p, c) in pairs.iter().zip(&corners) {
+                let (mut whole, mut split) = (vec![0.0f32; channels as usize], vec![0.0f32; channels as usize]);
+                g.interpolate(&SpherePair(*p), &mut whole);
+                g.blend(c, &mut split);
+                assert_eq!(whole, split, "{bits} bits x {channels}");
+            }
+        }
+        let (_, small) = test_grid(3, 1, 4);
+        let (_, big) = test_grid(5, 1, 4);
+        let foreign = big.corners(&SpherePair([0.9, 0.9, 0.9, 0.9]));
+        let blended = std::panic::catch_unwind(|| small.blend(&foreign, &mut [0.0]));
+        assert!(blended.is_err(), "corners of a 5^4 grid blended in a 3^4 one");
     }
 
     /// Stochastic filtering is unbiased: averaged over many draws it

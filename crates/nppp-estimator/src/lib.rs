@@ -35,7 +35,7 @@ pub use exit::{
     DecodeRepairs, EXIT_FEATURES, EXIT_THROUGHPUT_BOUND, EXIT_THROUGHPUT_BOUND_MEDIUM, Exit, ExitBounds, ExitTransform,
     exit_throughput_bound,
 };
-pub use grid::{QuantizedGrid, node_coords, node_count};
+pub use grid::{Corners, QuantizedGrid, node_coords, node_count};
 pub use mlp::{Dense, Mlp};
 pub use quant::{QuantError, dequantize, quantize};
 pub use sampler::{DecodedBatch, EstimatorSampler, ExitBatch};

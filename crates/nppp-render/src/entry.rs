@@ -15,7 +15,7 @@ use crate::path::PathState;
 use crate::scene_data::RenderScene;
 use crate::surface::SurfaceKind;
 use glam::Vec3;
-use nppp_estimator::{Exit, ExitBatch};
+use nppp_estimator::{Corners, Exit, ExitBatch};
 
 /// Reusable buffers for answering a wavefront step's entries in batches.
 #[derive(Default)]
@@ -23,6 +23,8 @@ pub struct EntryBatch {
     /// (path index, entry)
     pub entries: Vec<(usize, EstimatorEntry)>,
     rows: Vec<usize>,
+    /// Per row of a neural batch, where its latent lookup reads.
+    corners: Vec<Corners>,
     decode: ExitBatch,
     pub exits: Vec<Exit>,
     /// Per entry, parallel to `exits`: the vertices the renderer still uses.
@@ -63,11 +65,20 @@ impl EntryBatch {
                 EstimatorModel::Neural { sampler } => {
                     let (entries, rows) = (&self.entries, &self.rows);
                     let lookup = ests.latent_lookup;
+                    // Every row's latent reads start before any is blended.
+                    self.corners.clear();
+                    if lookup == LatentLookup::Interpolate {
+                        self.corners.extend(
+                            rows.iter()
+                                .map(|&i| sampler.latent_corners(&entries[i].1.pair)),
+                        );
+                    }
+                    let corners = &self.corners;
                     let fill = |k: usize, z: &mut [f32], noise: &mut [f32]| {
                         let (path, entry) = &entries[rows[k]];
                         let rng = &mut paths[*path].rng;
                         match lookup {
-                            LatentLookup::Interpolate => sampler.latent(&entry.pair, z),
+                            LatentLookup::Interpolate => sampler.latent_at(&corners[k], z),
                             LatentLookup::Stochastic => {
                                 let u =
                                     [rng.uniform(), rng.uniform(), rng.uniform(), rng.uniform()];
