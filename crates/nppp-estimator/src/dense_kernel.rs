@@ -11,7 +11,7 @@
 //! output. This kernel reads the weights as packed at load, keeps a block
 //! of rows' outputs in registers across the whole inner dimension, and
 //! adds the bias and applies ReLU before storing (criterion,
-//! `estimator_decoder_rows`; BENCHMARKS.md, "The decoder kernel").
+//! `estimator_decoder_rows`; BENCHMARKS.md, "Cheaper entries").
 //!
 //! The instruction set is picked at run time: AVX-512F, AVX2 with FMA, or
 //! on any other CPU `matrixmultiply` as before. Each output element is the

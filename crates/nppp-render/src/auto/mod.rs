@@ -86,13 +86,19 @@ pub const COST_PER_ENTRY: f64 = 7.0;
 /// The part of a decoder row's time that does not grow with its size (the
 /// per-row overhead of the products): from the times of a 128-row batch of
 /// the 3,488- and the 11,072-multiply-add decoders (`estimator_decoder_rows`,
-/// 8.9 us and 26.0 us; BENCHMARKS.md "The decoder kernel").
+/// 8.9 us and 26.0 us; BENCHMARKS.md "Cheaper entries").
 pub const COST_PER_DECODER_ROW: f64 = 0.17;
 /// One multiply-add of a decoder row: 0.70x the 7.9 units per 11,072 that
 /// `matrixmultiply` took (the slope between the two decoder sizes, 17.5 ps
 /// against 24.9 ps a multiply-add on one core).
 pub const COST_PER_DECODER_MULTIPLY_ADD: f64 = 5.5 / 11_072.0;
-/// One standard normal of a decoder row's noise (the ziggurat).
+/// One standard normal of a decoder row's noise (the ziggurat). The
+/// 32-bit ziggurat that replaced `rand_distr`'s draws them in 0.57x the
+/// time (criterion); the price stays, because on the AVX-512 machine the
+/// model already predicts the default scene's picked-NEE renders 5% cheaper
+/// than they time (`tools/fit_cost_model.py`: 1.08x PT's time against
+/// 1.14x measured), and a lower price would move a losing estimator
+/// towards the margin, not a winning one.
 pub const COST_PER_DECODER_NORMAL: f64 = 0.1125;
 /// A ray whose chord the mask judged a miss (the chord's coordinates and a
 /// mask lookup): the room of 2,025 knots makes about one per sample.
