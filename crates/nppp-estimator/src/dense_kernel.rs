@@ -131,47 +131,15 @@ impl PackedLayer {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f")]
     fn forward_avx512(&self, a: &[f32], a_stride: usize, rows: usize, c: &mut [f32]) {
-        self.blocks(
-            a,
-            a_stride,
-            rows,
-            c,
-            4,
-            4,
-            |l, a, a_stride, row, col, v, c| match v {
-                4 => x86::block_avx512::<4, 4>(l, a, a_stride, row, col, c),
-                3 => x86::block_avx512::<4, 3>(l, a, a_stride, row, col, c),
-                2 => x86::block_avx512::<4, 2>(l, a, a_stride, row, col, c),
-                _ => x86::block_avx512::<4, 1>(l, a, a_stride, row, col, c),
-            },
-            |l, a, a_stride, row, col, v, c| match v {
-                4 => x86::block_avx512::<1, 4>(l, a, a_stride, row, col, c),
-                3 => x86::block_avx512::<1, 3>(l, a, a_stride, row, col, c),
-                2 => x86::block_avx512::<1, 2>(l, a, a_stride, row, col, c),
-                _ => x86::block_avx512::<1, 1>(l, a, a_stride, row, col, c),
-            },
-        )
+        // SAFETY: this function runs only where AVX-512F is (see `forward`).
+        unsafe { self.forward_simd::<std::arch::x86_64::__m512, 4, 4>(a, a_stride, rows, c) }
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     fn forward_avx2(&self, a: &[f32], a_stride: usize, rows: usize, c: &mut [f32]) {
-        self.blocks(
-            a,
-            a_stride,
-            rows,
-            c,
-            2,
-            2,
-            |l, a, a_stride, row, col, v, c| match v {
-                2 => x86::block_avx2::<2, 2>(l, a, a_stride, row, col, c),
-                _ => x86::block_avx2::<2, 1>(l, a, a_stride, row, col, c),
-            },
-            |l, a, a_stride, row, col, v, c| match v {
-                2 => x86::block_avx2::<1, 2>(l, a, a_stride, row, col, c),
-                _ => x86::block_avx2::<1, 1>(l, a, a_stride, row, col, c),
-            },
-        )
+        // SAFETY: this function runs only where AVX2 and FMA are.
+        unsafe { self.forward_simd::<x86::Ymm2, 2, 2>(a, a_stride, rows, c) }
     }
 
     /// `matrixmultiply`'s product (its own kernels for the CPU: NEON on
@@ -209,36 +177,32 @@ impl PackedLayer {
         }
     }
 
-    /// Walks the output in blocks of `r` rows x up to `v` column blocks
-    /// (`v * LANES` outputs): `full` gets blocks of `r` rows, `tail` the
-    /// rows left over one at a time, each with the number of column blocks
-    /// it covers (fewer at a narrow layer's edge). Both compute every
-    /// element with the same sum order, so a row's result does not depend
-    /// on the block it falls in.
+    /// Walks the output in blocks of `R` rows x up to `V` column blocks
+    /// (`V * LANES` outputs), the rows left over one at a time and a narrow
+    /// layer's last columns in fewer blocks. Every element is computed by
+    /// [`x86::block`] with the same sum order, so a row's result does not
+    /// depend on the block it falls in.
+    ///
+    /// # Safety
+    /// The CPU must have the features `G`'s operations are compiled for;
+    /// the caller is a `#[target_feature]` function that enables them, into
+    /// which this and the blocks inline.
+    #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn blocks(
-        &self,
-        a: &[f32],
-        a_stride: usize,
-        rows: usize,
-        c: &mut [f32],
-        r: usize,
-        v: usize,
-        full: impl Fn(&Self, &[f32], usize, usize, usize, usize, &mut [f32]),
-        tail: impl Fn(&Self, &[f32], usize, usize, usize, usize, &mut [f32]),
-    ) {
+    unsafe fn forward_simd<G: x86::Lanes16, const R: usize, const V: usize>(&self, a: &[f32], a_stride: usize, rows: usize, c: &mut [f32]) {
         let col_blocks = self.padded / LANES;
         let mut col = 0;
         while col < col_blocks {
-            let nv = (col_blocks - col).min(v);
+            let nv = (col_blocks - col).min(V);
             let mut row = 0;
-            while row + r <= rows {
-                full(self, a, a_stride, row, col, nv, c);
-                row += r;
+            // SAFETY (all blocks): the caller's features; `block` checks
+            // the slices.
+            while row + R <= rows {
+                unsafe { x86::block_v::<G, R, V>(nv, self, a, a_stride, row, col, c) };
+                row += R;
             }
             while row < rows {
-                tail(self, a, a_stride, row, col, nv, c);
+                unsafe { x86::block_v::<G, 1, V>(nv, self, a, a_stride, row, col, c) };
                 row += 1;
             }
             col += nv;
@@ -249,22 +213,90 @@ impl PackedLayer {
 /// The x86 blocks: `R` rows x `V` column blocks of [`LANES`] outputs, the
 /// accumulators in registers from the bias to the store (ReLU applied
 /// there), one fused multiply-add per input and register in input order.
+/// One generic block serves both instruction sets through [`Lanes16`]: a
+/// column block is one AVX-512 register or two AVX2 ones.
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::{LANES, PackedLayer};
     use std::arch::x86_64::*;
 
-    /// Checks what the blocks below read and write, once per block.
-    #[inline(always)]
-    fn check<const R: usize, const V: usize>(l: &PackedLayer, a: &[f32], a_stride: usize, row: usize, col: usize, c: &[f32]) {
-        assert!(a.len() >= (row + R - 1) * a_stride + l.inputs);
-        assert!((col + V) * LANES <= l.padded && c.len() >= (row + R) * l.padded);
-        assert!(l.weight.len() == l.inputs * l.padded && l.bias.len() == l.padded);
+    /// [`LANES`] floats in registers, and the five operations a block does
+    /// on them. Every method must be called only where its instruction set
+    /// is enabled (see [`PackedLayer::forward_simd`]).
+    pub(super) trait Lanes16: Copy {
+        /// # Safety
+        /// `p` is valid for reading [`LANES`] floats.
+        unsafe fn load(p: *const f32) -> Self;
+        unsafe fn splat(x: f32) -> Self;
+        /// `x * w + acc`, fused.
+        unsafe fn fmadd(x: Self, w: Self, acc: Self) -> Self;
+        unsafe fn relu(self) -> Self;
+        /// # Safety
+        /// `p` is valid for writing [`LANES`] floats.
+        unsafe fn store(self, p: *mut f32);
     }
 
-    #[target_feature(enable = "avx512f")]
-    #[inline]
-    pub(super) fn block_avx512<const R: usize, const V: usize>(
+    impl Lanes16 for __m512 {
+        #[inline(always)]
+        unsafe fn load(p: *const f32) -> Self {
+            unsafe { _mm512_loadu_ps(p) }
+        }
+        #[inline(always)]
+        unsafe fn splat(x: f32) -> Self {
+            unsafe { _mm512_set1_ps(x) }
+        }
+        #[inline(always)]
+        unsafe fn fmadd(x: Self, w: Self, acc: Self) -> Self {
+            unsafe { _mm512_fmadd_ps(x, w, acc) }
+        }
+        #[inline(always)]
+        unsafe fn relu(self) -> Self {
+            unsafe { _mm512_max_ps(self, _mm512_setzero_ps()) }
+        }
+        #[inline(always)]
+        unsafe fn store(self, p: *mut f32) {
+            unsafe { _mm512_storeu_ps(p, self) }
+        }
+    }
+
+    /// Two AVX2 registers: a column block of [`LANES`] floats.
+    #[derive(Clone, Copy)]
+    pub(super) struct Ymm2([__m256; 2]);
+
+    impl Lanes16 for Ymm2 {
+        #[inline(always)]
+        unsafe fn load(p: *const f32) -> Self {
+            unsafe { Ymm2([_mm256_loadu_ps(p), _mm256_loadu_ps(p.add(8))]) }
+        }
+        #[inline(always)]
+        unsafe fn splat(x: f32) -> Self {
+            unsafe { Ymm2([_mm256_set1_ps(x); 2]) }
+        }
+        #[inline(always)]
+        unsafe fn fmadd(x: Self, w: Self, acc: Self) -> Self {
+            unsafe { Ymm2([_mm256_fmadd_ps(x.0[0], w.0[0], acc.0[0]), _mm256_fmadd_ps(x.0[1], w.0[1], acc.0[1])]) }
+        }
+        #[inline(always)]
+        unsafe fn relu(self) -> Self {
+            unsafe { Ymm2(self.0.map(|v| _mm256_max_ps(v, _mm256_setzero_ps()))) }
+        }
+        #[inline(always)]
+        unsafe fn store(self, p: *mut f32) {
+            unsafe {
+                _mm256_storeu_ps(p, self.0[0]);
+                _mm256_storeu_ps(p.add(8), self.0[1]);
+            }
+        }
+    }
+
+    /// [`block`] with `v <= V` column blocks, monomorphized per width.
+    ///
+    /// # Safety
+    /// As [`Lanes16`]'s methods.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn block_v<G: Lanes16, const R: usize, const V: usize>(
+        v: usize,
         l: &PackedLayer,
         a: &[f32],
         a_stride: usize,
@@ -272,84 +304,59 @@ mod x86 {
         col: usize,
         c: &mut [f32],
     ) {
-        check::<R, V>(l, a, a_stride, row, col, c);
+        // SAFETY: the caller's features.
+        unsafe {
+            match v {
+                4 if V >= 4 => block::<G, R, 4>(l, a, a_stride, row, col, c),
+                3 if V >= 3 => block::<G, R, 3>(l, a, a_stride, row, col, c),
+                2 if V >= 2 => block::<G, R, 2>(l, a, a_stride, row, col, c),
+                _ => block::<G, R, 1>(l, a, a_stride, row, col, c),
+            }
+        }
+    }
+
+    /// Rows `row..row + R`, column blocks `col..col + V`.
+    ///
+    /// # Safety
+    /// As [`Lanes16`]'s methods; the slices are checked here.
+    #[inline(always)]
+    unsafe fn block<G: Lanes16, const R: usize, const V: usize>(
+        l: &PackedLayer,
+        a: &[f32],
+        a_stride: usize,
+        row: usize,
+        col: usize,
+        c: &mut [f32],
+    ) {
+        assert!(a.len() >= (row + R - 1) * a_stride + l.inputs);
+        assert!((col + V) * LANES <= l.padded && c.len() >= (row + R) * l.padded);
+        assert!(l.weight.len() == l.inputs * l.padded && l.bias.len() == l.padded);
         let (p, c0) = (l.padded, col * LANES);
-        // SAFETY: `check` bounds every offset below: bias and weight rows
-        // hold `padded` floats and `c0 + V * LANES <= padded`; rows
+        // SAFETY: the asserts bound every offset below: bias and weight
+        // rows hold `padded` floats and `c0 + V * LANES <= padded`; rows
         // `row..row + R` of `a` hold `inputs` floats from `r * a_stride`;
         // those of `c` hold `padded` floats from `r * padded`.
         unsafe {
             let bias = l.bias.as_ptr().add(c0);
-            let mut acc: [[__m512; V]; R] = [[_mm512_setzero_ps(); V]; R];
-            for acc_r in acc.iter_mut() {
-                for (v, s) in acc_r.iter_mut().enumerate() {
-                    *s = _mm512_loadu_ps(bias.add(v * LANES));
-                }
-            }
+            let bias: [G; V] = std::array::from_fn(|v| G::load(bias.add(v * LANES)));
+            let mut acc: [[G; V]; R] = [bias; R];
             let x0 = a.as_ptr().add(row * a_stride);
             let w0 = l.weight.as_ptr().add(c0);
             for i in 0..l.inputs {
                 let w_i = w0.add(i * p);
-                let w: [__m512; V] = std::array::from_fn(|v| _mm512_loadu_ps(w_i.add(v * LANES)));
+                let w: [G; V] = std::array::from_fn(|v| G::load(w_i.add(v * LANES)));
                 for (r, acc_r) in acc.iter_mut().enumerate() {
-                    let x = _mm512_set1_ps(*x0.add(r * a_stride + i));
+                    let x = G::splat(*x0.add(r * a_stride + i));
                     for (s, &w_v) in acc_r.iter_mut().zip(&w) {
-                        *s = _mm512_fmadd_ps(x, w_v, *s);
+                        *s = G::fmadd(x, w_v, *s);
                     }
                 }
             }
             let out0 = c.as_mut_ptr().add(row * p + c0);
             for (r, acc_r) in acc.iter().enumerate() {
                 for (v, &s) in acc_r.iter().enumerate() {
-                    let y = if l.relu { _mm512_max_ps(s, _mm512_setzero_ps()) } else { s };
-                    _mm512_storeu_ps(out0.add(r * p + v * LANES), y);
-                }
-            }
-        }
-    }
-
-    #[target_feature(enable = "avx2,fma")]
-    #[inline]
-    pub(super) fn block_avx2<const R: usize, const V: usize>(
-        l: &PackedLayer,
-        a: &[f32],
-        a_stride: usize,
-        row: usize,
-        col: usize,
-        c: &mut [f32],
-    ) {
-        check::<R, V>(l, a, a_stride, row, col, c);
-        let (p, c0) = (l.padded, col * LANES);
-        // SAFETY: as in `block_avx512`; a column block is two registers of 8.
-        unsafe {
-            let bias = l.bias.as_ptr().add(c0);
-            let mut acc: [[[__m256; 2]; V]; R] = [[[_mm256_setzero_ps(); 2]; V]; R];
-            for acc_r in acc.iter_mut() {
-                for (v, s) in acc_r.iter_mut().enumerate() {
-                    *s = [_mm256_loadu_ps(bias.add(v * LANES)), _mm256_loadu_ps(bias.add(v * LANES + 8))];
-                }
-            }
-            let x0 = a.as_ptr().add(row * a_stride);
-            let w0 = l.weight.as_ptr().add(c0);
-            for i in 0..l.inputs {
-                let w_i = w0.add(i * p);
-                let w: [[__m256; 2]; V] =
-                    std::array::from_fn(|v| [_mm256_loadu_ps(w_i.add(v * LANES)), _mm256_loadu_ps(w_i.add(v * LANES + 8))]);
-                for (r, acc_r) in acc.iter_mut().enumerate() {
-                    let x = _mm256_set1_ps(*x0.add(r * a_stride + i));
-                    for (s, w_v) in acc_r.iter_mut().zip(&w) {
-                        s[0] = _mm256_fmadd_ps(x, w_v[0], s[0]);
-                        s[1] = _mm256_fmadd_ps(x, w_v[1], s[1]);
-                    }
-                }
-            }
-            let out0 = c.as_mut_ptr().add(row * p + c0);
-            for (r, acc_r) in acc.iter().enumerate() {
-                for (v, s) in acc_r.iter().enumerate() {
-                    for (h, &s_h) in s.iter().enumerate() {
-                        let y = if l.relu { _mm256_max_ps(s_h, _mm256_setzero_ps()) } else { s_h };
-                        _mm256_storeu_ps(out0.add(r * p + v * LANES + h * 8), y);
-                    }
+                    let y = if l.relu { s.relu() } else { s };
+                    y.store(out0.add(r * p + v * LANES));
                 }
             }
         }
