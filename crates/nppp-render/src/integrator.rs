@@ -181,14 +181,20 @@ impl Wavefront {
         self.meets.extend(self.paths.iter().map(|p| {
             match &scene.estimators {
                 // A path at depth M only looks for emission: the real mesh serves (and P >= M never estimates).
-                Some(est) if p.depth >= est.min_bounces && p.depth < m => est.intersect(
-                    &scene.accel,
-                    p.origin,
-                    p.dir,
-                    p.skip_instance,
-                    p.depth,
-                    stats,
-                ),
+                Some(est)
+                    if p.depth >= est.min_bounces
+                        && p.depth < m
+                        && !est.cannot_enter(&scene.accel, p.origin) =>
+                {
+                    est.intersect(
+                        &scene.accel,
+                        p.origin,
+                        p.dir,
+                        p.skip_instance,
+                        p.depth,
+                        stats,
+                    )
+                }
                 // Only a path that has just left an estimator skips an
                 // instance, and only the estimator layout keeps it apart.
                 _ => if p.skip_instance == crate::accel::NO_SKIP {

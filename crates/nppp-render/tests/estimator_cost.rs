@@ -224,3 +224,71 @@ fn with_p_at_least_m_every_ray_traces_the_plain_layout() {
             .all(|(a, b)| a.map(f32::to_bits) == b.map(f32::to_bits))
     );
 }
+
+/// A ray from inside the sphere of the scene's only estimator instance can
+/// enter no sphere, so it skips the estimator query and traces the merged
+/// layout (`Estimators::cannot_enter`): it must meet what the query would
+/// have traced for real, the same instance and triangle at the same
+/// distance (to rounding: the merged BLAS holds world-space triangles, the
+/// instance's BLAS object-space ones). With a second estimator instance no
+/// ray is let through.
+#[test]
+fn a_ray_inside_the_sole_estimator_sphere_meets_what_the_estimator_layout_traces() {
+    use glam::Vec3;
+    use nppp_render::accel::NO_SKIP;
+    use nppp_render::estimator::{EstimatorStats, Meet};
+    let scene =
+        nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-glass.json")).unwrap();
+    let mut rs = RenderScene::for_estimators(&scene);
+    rs.estimators = Estimators::load(&scene, EstimatorMode::Oracle, 1).unwrap();
+    let est = rs.estimators.as_ref().unwrap();
+    let inst = est.per_instance.iter().position(Option::is_some).unwrap();
+    let sphere = est.list[est.per_instance[inst].unwrap() as usize].sphere;
+    let x = rs.accel.instances[inst];
+    let mut rng = nppp_geom::rng::SampleRng::new(7, 0, 0);
+    let mut stats = EstimatorStats::default();
+    let (mut inside, mut hits) = (0, 0);
+    for _ in 0..4000 {
+        let mut u = || 2.0 * rng.uniform() - 1.0;
+        // A point of the cube around the unit sphere, a direction.
+        let p = Vec3::new(u(), u(), u());
+        let d = Vec3::new(u(), u(), u());
+        if d.length_squared() < 1e-4 || d.length_squared() > 1.0 {
+            continue;
+        }
+        let (o, d) = (x.point_to_world(sphere.from_unit_point(p)), d.normalize());
+        let can_skip = est.cannot_enter(&rs.accel, o);
+        assert_eq!(can_skip, p.length_squared() <= 1.0, "{p}");
+        if !can_skip {
+            continue;
+        }
+        inside += 1;
+        let query = est.intersect(&rs.accel, o, d, NO_SKIP, 1, &mut stats);
+        let merged = rs.plain().intersect(o, d, f32::INFINITY);
+        match (query, merged) {
+            (Meet::Nothing, None) => {}
+            (Meet::Surface(a), Some(b)) => {
+                hits += 1;
+                assert_eq!((a.instance, a.prim), (b.instance, b.prim), "{o} {d}");
+                assert!((a.t - b.t).abs() <= 1e-4 * a.t.max(1.0), "{} {}", a.t, b.t);
+            }
+            (q, m) => panic!("from {o} along {d}: the query met {q:?}, the merged layout {m:?}"),
+        }
+    }
+    assert!(
+        inside > 1000 && hits > 1000,
+        "{inside} rays inside, {hits} hits"
+    );
+    assert_eq!(stats.entries, 0);
+
+    // A second instance of the glass knot with the same estimator.
+    let mut two = scene.clone();
+    let mut copy = two.instances[inst].clone();
+    copy.transform.translation.x += 150.0;
+    two.instances.push(copy);
+    let mut rs2 = RenderScene::for_estimators(&two);
+    rs2.estimators = Estimators::load(&two, EstimatorMode::Oracle, 1).unwrap();
+    let est2 = rs2.estimators.as_ref().unwrap();
+    let centre = rs2.accel.instances[inst].point_to_world(sphere.center);
+    assert!(!est2.cannot_enter(&rs2.accel, centre));
+}
