@@ -97,6 +97,12 @@ pub struct RenderArgs {
     /// by default.
     #[arg(long)]
     pub auto_confirm: bool,
+    /// With --estimators auto: the efficiency over PT's (1 / (work x
+    /// variance), measured by the pilot) an estimator needs to be turned
+    /// on. Higher is more cautious; it covers the pilot's noise and the
+    /// cost model's error (BENCHMARKS.md, "auto").
+    #[arg(long, value_name = "FACTOR")]
+    pub auto_margin: Option<f64>,
     /// How an estimator entry reads the latent grid: quadrilinear
     /// interpolation of 16 corners, or one corner picked with the
     /// probability of its weight (stochastic filtering, one memory access).
@@ -457,6 +463,19 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         );
     }
     let auto = a.estimators == EstimatorChoice::Auto;
+    if a.auto_margin.is_some() && !auto {
+        bail!(
+            "--auto-margin is the margin of --estimators auto: give --estimators auto (the default)"
+        );
+    }
+    if let Some(m) = a.auto_margin
+        && !(m.is_finite() && (1.0..=10.0).contains(&m))
+    {
+        bail!(
+            "--auto-margin {m}: give a factor from 1 to 10 (the default is {})",
+            nppp_render::auto::PilotOptions::default().margin
+        );
+    }
     if a.auto_confirm && !auto {
         bail!(
             "--auto-confirm confirms what --estimators auto decides: give --estimators auto (the default)"
@@ -553,6 +572,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             min_p,
             min_p_medium,
             max_p: defaults.max_p.max(min_p),
+            margin: a.auto_margin.unwrap_or(defaults.margin),
             ..defaults
         };
         let p = nppp_render::auto::plan(&mut rs, ests, &pilot, &opts);

@@ -790,6 +790,20 @@ fn absurd_flags_are_rejected_before_rendering() {
         &["--estimators", "auto", "--min-bounces", "1"],
         &["--estimators auto chooses P"],
     );
+    for margin in ["0.9", "NaN", "inf", "11"] {
+        render_fails(
+            &format!("auto-margin-{margin}"),
+            &scene,
+            &["--auto-margin", margin],
+            &[&format!("--auto-margin {margin}"), "a factor from 1 to 10"],
+        );
+    }
+    render_fails(
+        "auto-margin-not-auto",
+        &scene,
+        &["--estimators", "neural", "--auto-margin", "1.2"],
+        &["--auto-margin is the margin of --estimators auto"],
+    );
     let o = nppp([
         "render".as_ref(),
         scene.as_os_str(),
