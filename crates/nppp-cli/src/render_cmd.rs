@@ -100,7 +100,7 @@ pub struct RenderArgs {
     /// With --estimators auto: the efficiency over PT's (1 / (work x
     /// variance), measured by the pilot) an estimator needs to be turned
     /// on. Higher is more cautious; it covers the pilot's noise and the
-    /// cost model's error (BENCHMARKS.md, "auto").
+    /// cost model's error (BENCHMARKS.md, "auto's margin").
     #[arg(long, value_name = "FACTOR")]
     pub auto_margin: Option<f64>,
     /// How an estimator entry reads the latent grid: quadrilinear

@@ -431,8 +431,6 @@ struct Candidate {
 }
 
 impl Estimators {
-    /// Closest-hit query for a path that may use estimators. `skip` is an
-    /// instance the ray has just left through its estimator (ignored entirely).
     /// True when a ray from `o` certainly meets no estimator: the scene's
     /// only estimator instance has `o` inside its sphere (the same test
     /// [`Estimators::intersect`] makes). Such a ray, the walk of a path
@@ -455,6 +453,8 @@ impl Estimators {
         uo.length_squared() <= 1.0
     }
 
+    /// Closest-hit query for a path that may use estimators. `skip` is an
+    /// instance the ray has just left through its estimator (ignored entirely).
     pub fn intersect(
         &self,
         accel: &Accel,
