@@ -184,7 +184,7 @@ impl Wavefront {
                 Some(est)
                     if p.depth >= est.min_bounces
                         && p.depth < m
-                        && !est.cannot_enter(&scene.accel, p.origin) =>
+                        && !est.cannot_enter(&scene.accel, p.origin, p.dir) =>
                 {
                     est.intersect(
                         &scene.accel,

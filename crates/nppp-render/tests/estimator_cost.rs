@@ -225,15 +225,16 @@ fn with_p_at_least_m_every_ray_traces_the_plain_layout() {
     );
 }
 
-/// A ray from inside the sphere of the scene's only estimator instance can
-/// enter no sphere, so it skips the estimator query and traces the merged
-/// layout (`Estimators::cannot_enter`): it must meet what the query would
-/// have traced for real, the same instance and triangle at the same
-/// distance (to rounding: the merged BLAS holds world-space triangles, the
-/// instance's BLAS object-space ones). With a second estimator instance no
-/// ray is let through.
+/// A ray that starts inside the sphere of the scene's only estimator
+/// instance, or does not enter that sphere ahead, meets no estimator: it
+/// skips the estimator query and traces the merged layout
+/// (`Estimators::cannot_enter`). It must meet what the query would have
+/// traced, the same instance and triangle at the same distance (to
+/// rounding: the merged BLAS holds world-space triangles, the instance's
+/// BLAS object-space ones). With a second estimator instance no ray is let
+/// through.
 #[test]
-fn a_ray_inside_the_sole_estimator_sphere_meets_what_the_estimator_layout_traces() {
+fn a_ray_that_cannot_enter_the_sole_estimator_sphere_meets_what_the_estimator_layout_traces() {
     use glam::Vec3;
     use nppp_render::accel::NO_SKIP;
     use nppp_render::estimator::{EstimatorStats, Meet};
@@ -247,37 +248,56 @@ fn a_ray_inside_the_sole_estimator_sphere_meets_what_the_estimator_layout_traces
     let x = rs.accel.instances[inst];
     let mut rng = nppp_geom::rng::SampleRng::new(7, 0, 0);
     let mut stats = EstimatorStats::default();
-    let (mut inside, mut hits) = (0, 0);
-    for _ in 0..4000 {
+    let (mut inside, mut missing, mut entering, mut hits) = (0, 0, 0, 0);
+    for _ in 0..8000 {
         let mut u = || 2.0 * rng.uniform() - 1.0;
-        // A point of the cube around the unit sphere, a direction.
-        let p = Vec3::new(u(), u(), u());
+        // A point of the cube of side 4 around the unit sphere, a direction.
+        let p = 2.0 * Vec3::new(u(), u(), u());
         let d = Vec3::new(u(), u(), u());
         if d.length_squared() < 1e-4 || d.length_squared() > 1.0 {
             continue;
         }
-        let (o, d) = (x.point_to_world(sphere.from_unit_point(p)), d.normalize());
-        let can_skip = est.cannot_enter(&rs.accel, o);
-        assert_eq!(can_skip, p.length_squared() <= 1.0, "{p}");
+        let d = d.normalize();
+        // Whether the ray can enter the unit sphere ahead, in f64 (the
+        // rotation keeps directions, so object space is world space here
+        // up to the transform): starts outside, and its closest approach
+        // ahead lies inside.
+        let (pd, dd) = (p.as_dvec3(), d.as_dvec3());
+        let b = pd.dot(dd);
+        let closest = (pd - dd * b).length_squared();
+        let starts_inside = pd.length_squared() <= 1.0;
+        if (pd.length_squared() - 1.0).abs() < 1e-4 || (closest - 1.0).abs() < 1e-4 {
+            continue; // too close to call
+        }
+        let may_enter = !starts_inside && b < 0.0 && closest < 1.0;
+        let o = x.point_to_world(sphere.from_unit_point(p));
+        let dw = x.dir_to_world(d);
+        let can_skip = est.cannot_enter(&rs.accel, o, dw);
+        assert_eq!(can_skip, !may_enter, "from {p} along {d}");
         if !can_skip {
+            entering += 1;
             continue;
         }
-        inside += 1;
-        let query = est.intersect(&rs.accel, o, d, NO_SKIP, 1, &mut stats);
-        let merged = rs.plain().intersect(o, d, f32::INFINITY);
+        if starts_inside {
+            inside += 1;
+        } else {
+            missing += 1;
+        }
+        let query = est.intersect(&rs.accel, o, dw, NO_SKIP, 1, &mut stats);
+        let merged = rs.plain().intersect(o, dw, f32::INFINITY);
         match (query, merged) {
             (Meet::Nothing, None) => {}
             (Meet::Surface(a), Some(b)) => {
                 hits += 1;
-                assert_eq!((a.instance, a.prim), (b.instance, b.prim), "{o} {d}");
+                assert_eq!((a.instance, a.prim), (b.instance, b.prim), "{o} {dw}");
                 assert!((a.t - b.t).abs() <= 1e-4 * a.t.max(1.0), "{} {}", a.t, b.t);
             }
-            (q, m) => panic!("from {o} along {d}: the query met {q:?}, the merged layout {m:?}"),
+            (q, m) => panic!("from {o} along {dw}: the query met {q:?}, the merged layout {m:?}"),
         }
     }
     assert!(
-        inside > 1000 && hits > 1000,
-        "{inside} rays inside, {hits} hits"
+        inside > 200 && missing > 1000 && entering > 200 && hits > 1000,
+        "{inside} rays from inside, {missing} missing the sphere, {entering} entering it, {hits} hits"
     );
     assert_eq!(stats.entries, 0);
 
@@ -290,5 +310,5 @@ fn a_ray_inside_the_sole_estimator_sphere_meets_what_the_estimator_layout_traces
     rs2.estimators = Estimators::load(&two, EstimatorMode::Oracle, 1).unwrap();
     let est2 = rs2.estimators.as_ref().unwrap();
     let centre = rs2.accel.instances[inst].point_to_world(sphere.center);
-    assert!(!est2.cannot_enter(&rs2.accel, centre));
+    assert!(!est2.cannot_enter(&rs2.accel, centre, Vec3::X));
 }

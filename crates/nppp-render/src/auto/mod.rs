@@ -1098,11 +1098,12 @@ mod tests {
         let c = choose(&[with(1.2, 30.0, 1), with(2.0, 32.0, 2)], &opts);
         assert_eq!(c.map(|c| c.min_bounces), Some(2));
         // A cheap configuration below the margin is not chosen by the tie.
-        let c = choose(&[with(1.05, 20.0, 0), with(1.15, 32.0, 2)], &opts);
+        let below = opts.margin * 0.98;
+        let c = choose(&[with(below, 20.0, 0), with(below * 1.1, 32.0, 2)], &opts);
         assert_eq!(c.map(|c| c.min_bounces), Some(2));
         // Nothing beats PT by the margin: off.
         assert_eq!(
-            choose(&[with(1.05, 30.0, 1), with(0.0, 10.0, 0)], &opts),
+            choose(&[with(below, 30.0, 1), with(0.0, 10.0, 0)], &opts),
             None
         );
         assert_eq!(choose(&[], &opts), None);
