@@ -58,10 +58,12 @@ fn trial_at(d: &EstimatorDecision, p: u32) -> &Trial {
 
 #[test]
 fn the_decision_is_the_same_at_any_thread_count_and_turns_off_a_losing_estimator() {
-    // At the scene's own 256x256: a 128x128 image's 32x32 pilot measured
-    // the knot at P = 1 with picked NEE at 1.07x PT's efficiency at this
-    // seed (0.97x at equal error in 64-spp renders of that size).
-    let scene = load("cornell-box.json", 256);
+    // The tube, whose estimator loses at every P >= 1 (0.97x PT's
+    // efficiency in its pilots at 8 seeds of 8). The default scene's knot
+    // served here until rays that cannot enter its sphere took the merged
+    // layout: with picked NEE it is now within 2-4% of PT at equal error,
+    // a tie its pilot puts on either side of the margin.
+    let scene = load("tube.json", 0);
     let one = pilot(&scene, 1);
     let two = pilot(&scene, 2);
     let three = pilot(&scene, 3);
@@ -78,9 +80,7 @@ fn the_decision_is_the_same_at_any_thread_count_and_turns_off_a_losing_estimator
     }
     let knot = &one.estimators[0];
     assert_eq!(knot.choice, None, "{:?}", knot.trials);
-    // Every configuration measured below the margin a choice needs (P = 1
-    // with picked NEE is within a few percent of PT here, 0.96x at equal
-    // error in a 64-spp render).
+    // Every configuration measured below the margin a choice needs.
     let margin = PilotOptions::default().margin;
     assert!(
         knot.trials.iter().all(|t| t.efficiency < margin),
@@ -103,6 +103,7 @@ fn the_decision_is_the_same_at_any_thread_count_and_turns_off_a_losing_estimator
     );
     assert!(chosen.is_none());
     assert_eq!(rs.camera.width, 256, "the pilot puts the camera back");
+    assert_eq!(rs.camera.height, 192);
 }
 
 #[test]
@@ -156,10 +157,12 @@ fn a_configuration_that_cannot_win_is_not_measured_twice() {
 /// The confirmation pass ([`plan`]), forced on (every candidate counts as
 /// unsure): its samples are the image's own, so the plan's image is the
 /// same bits at any thread count and when rendered in parts over any split
-/// of the sample range; and measured at the render's own resolution, the
-/// default scene's losing knot stays off.
+/// of the sample range; and the decision is the one its own measurement
+/// makes (the default scene's knot with picked NEE, within a few percent
+/// of PT: on at this seed since rays that cannot enter its sphere took the
+/// merged layout, off before).
 #[test]
-fn the_confirmation_pass_renders_the_image_s_own_samples_and_keeps_a_loser_off() {
+fn the_confirmation_pass_renders_the_image_s_own_samples_and_decides_by_them() {
     let scene = load("cornell-box.json", 64);
     let render = RenderOptions {
         spp: 16,
@@ -214,12 +217,12 @@ fn the_confirmation_pass_renders_the_image_s_own_samples_and_keeps_a_loser_off()
         rest > 0 && rest <= render.spp / 2,
         "confirmation samples 0..{rest}"
     );
-    assert_eq!(knot.choice, None, "{confirmed:?}");
-    // Off because it measured below the confirmation's margin. (On this
-    // 64x64 image it measured 0.98x PT's efficiency until rays leaving the
-    // knot's own surface took the merged layout, 1.005x since; it loses in
-    // full-size renders.)
-    assert!(confirmed.efficiency < opts.confirm_margin, "{confirmed:?}");
+    assert_eq!(
+        knot.choice.is_some(),
+        confirmed.efficiency >= opts.confirm_margin,
+        "{confirmed:?}"
+    );
+    assert!(confirmed.efficiency.is_finite() && confirmed.efficiency > 0.0);
     assert_eq!(
         d2.estimators[0].confirmed.as_ref().unwrap().rel_var,
         confirmed.rel_var
