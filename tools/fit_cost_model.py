@@ -45,7 +45,7 @@ TERMS = ["later inner node visit", "later ray", "shadow ray", "estimator entry u
          "later leaf visit"]
 # The entry's split in crates/nppp-render/src/auto/mod.rs (COST_PER_ENTRY,
 # COST_PER_DECODER_ROW, COST_PER_DECODER_MULTIPLY_ADD, COST_PER_DECODER_NORMAL).
-ENTRY_SPLIT = (7.0, 0.17, 5.5 / 11_072.0, 0.1125)
+ENTRY_SPLIT = (9.1, 0.22, 7.15 / 11_072.0, 0.146)
 
 # scene file, common flags, the next-event estimation auto tries for its estimator
 SCENES = [
