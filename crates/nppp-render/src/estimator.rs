@@ -136,9 +136,9 @@ pub struct Estimators {
     /// Who decides whether an entry ray hits the object.
     pub entry_mask: EntryMask,
     /// The one instance that uses an estimator, when only one does (kept by
-    /// the constructor and [`Estimators::configure_one`]): a ray from
-    /// inside its sphere can enter no sphere (a sphere is convex, and there
-    /// is no other), so it needs no estimator query and takes the merged
+    /// the constructor and [`Estimators::configure_one`]): a ray that
+    /// starts inside its sphere (a sphere is convex) or misses it can meet
+    /// no estimator, so it needs no estimator query and takes the merged
     /// layout (see [`Estimators::cannot_enter`]).
     sole_instance: Option<u32>,
 }
