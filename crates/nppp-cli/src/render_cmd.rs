@@ -99,8 +99,8 @@ pub struct RenderArgs {
     pub auto_confirm: bool,
     /// With --estimators auto: the efficiency over PT's (1 / (work x
     /// variance), measured by the pilot) an estimator needs to be turned
-    /// on. Higher is more cautious; it covers the pilot's noise and the
-    /// cost model's error (BENCHMARKS.md, "auto's margin").
+    /// on; 1.05 by default. Higher is more cautious; it covers the pilot's
+    /// noise and the cost model's error (BENCHMARKS.md, "auto's margin").
     #[arg(long, value_name = "FACTOR")]
     pub auto_margin: Option<f64>,
     /// How an estimator entry reads the latent grid: quadrilinear
