@@ -13,14 +13,14 @@
 //! not know the render scene (which holds the estimators) nor the path
 //! state, so the modules stay acyclic (tests/module_graph.rs).
 
-use crate::accel::{Accel, SceneHit};
+use crate::accel::{Accel, InstanceXform, SceneHit};
 use crate::bsdf::Bsdf;
 use crate::bvh::Visit;
 use crate::object_walk::WalkVertex;
 use crate::surface::SurfaceKind;
 use glam::Vec3;
 use nppp_estimator::{DecodeRepairs, EstimatorSampler, Exit};
-use nppp_geom::sphere_pair::unit_sphere_chord;
+use nppp_geom::sphere_pair::{Chord, unit_sphere_chord};
 use nppp_geom::{BoundingSphere, Ray, SpherePair};
 
 /// What answers an estimator query.
@@ -141,6 +141,46 @@ pub struct Estimators {
     /// no estimator, so it needs no estimator query and takes the merged
     /// layout (see [`Estimators::cannot_enter`]).
     sole_instance: Option<u32>,
+}
+
+/// Where a world ray starts and heads against an estimator instance's
+/// sphere: the one test [`Estimators::intersect`] and
+/// [`Estimators::cannot_enter`] both make, so that they agree bit for bit.
+enum SphereEntry {
+    /// The ray starts inside the sphere (a sphere is convex: it never
+    /// enters it).
+    Inside,
+    /// It does not enter the sphere ahead.
+    Misses,
+    /// It enters: its origin in object space, the ray in the sphere's unit
+    /// frame (object-space direction), and its chord there.
+    Enters {
+        oo: Vec3,
+        unit_ray: Ray,
+        chord: Chord,
+    },
+}
+
+#[inline(always)]
+fn sphere_entry(sphere: &BoundingSphere, x: &InstanceXform, o: Vec3, d: Vec3) -> SphereEntry {
+    let oo = x.point_to_object(o);
+    let uo = sphere.to_unit_point(oo);
+    // Outside only when `> 1`: a NaN origin counts as inside (its mesh is
+    // traced).
+    if uo.length_squared() > 1.0 {
+        let unit_ray = Ray::new(uo, x.dir_to_object(d));
+        match unit_sphere_chord(&unit_ray) {
+            None => SphereEntry::Misses,
+            Some(chord) if chord.t_in < 0.0 => SphereEntry::Misses,
+            Some(chord) => SphereEntry::Enters {
+                oo,
+                unit_ray,
+                chord,
+            },
+        }
+    } else {
+        SphereEntry::Inside
+    }
 }
 
 /// Who decides whether a ray entering an estimator's sphere hits the object
@@ -451,16 +491,10 @@ impl Estimators {
             return false;
         };
         let x = &accel.instances[inst as usize];
-        let uo = self.list[ei as usize]
-            .sphere
-            .to_unit_point(x.point_to_object(o));
-        if uo.length_squared() <= 1.0 {
-            return true;
-        }
-        match unit_sphere_chord(&Ray::new(uo, x.dir_to_object(d))) {
-            None => true,
-            Some(chord) => chord.t_in < 0.0,
-        }
+        !matches!(
+            sphere_entry(&self.list[ei as usize].sphere, x, o, d),
+            SphereEntry::Enters { .. }
+        )
     }
 
     /// Closest-hit query for a path that may use estimators. `skip` is an
@@ -490,60 +524,59 @@ impl Estimators {
             {
                 let x = &accel.instances[inst as usize];
                 let est = &self.list[ei as usize];
-                let oo = x.point_to_object(o);
-                let uo = est.sphere.to_unit_point(oo);
-                // A ray from inside the sphere never uses it: trace the mesh.
-                if uo.length_squared() > 1.0 {
-                    let od = x.dir_to_object(d);
-                    let unit_ray = Ray::new(uo, od);
-                    let Some(chord) = unit_sphere_chord(&unit_ray) else {
-                        return f32::INFINITY;
-                    };
-                    if chord.t_in < 0.0 {
-                        return f32::INFINITY;
+                match sphere_entry(&est.sphere, x, o, d) {
+                    // A ray from inside the sphere never uses it: trace the mesh.
+                    SphereEntry::Inside => {}
+                    SphereEntry::Misses => return f32::INFINITY,
+                    SphereEntry::Enters {
+                        oo,
+                        unit_ray,
+                        chord,
+                    } => {
+                        let od = unit_ray.dir;
+                        // A ray that misses every box under the mesh's BVH root
+                        // certainly misses the mesh: no mask lookup (two memory
+                        // misses in an 8 MiB grid) for what geometry already
+                        // knows. The mask judges only rays that could hit.
+                        if !accel.blas[x.blas as usize].may_hit(oo.into(), od.into()) {
+                            stats.mask_skips += 1;
+                            return f32::INFINITY;
+                        }
+                        let entry_p = unit_ray.at(chord.t_in);
+                        let pair = SpherePair::from_points(entry_p, unit_ray.at(chord.t_out));
+                        if !self.mask_hits(est, accel, &Ray::new(entry_p, od), &pair) {
+                            stats.mask_skips += 1;
+                            return f32::INFINITY;
+                        }
+                        let to_world = est.sphere.radius * x.scale;
+                        let (t_in, t_out) = (chord.t_in * to_world, chord.t_out * to_world);
+                        if t_in >= tmax {
+                            return f32::INFINITY;
+                        }
+                        if let Some(c) = &cand
+                            && t_in < c.t_out
+                            && c.t_in < t_out
+                        {
+                            // Two estimators' chords overlap: neither knows the
+                            // other's object, so the ray is traced for real.
+                            chords_overlap = true;
+                        }
+                        if cand.as_ref().is_none_or(|c| t_in < c.t_in) {
+                            cand = Some(Candidate {
+                                t_in,
+                                t_out,
+                                entry: EstimatorEntry {
+                                    instance: inst,
+                                    ray: Ray::new(entry_p, od),
+                                    pair,
+                                },
+                            });
+                        }
+                        // Geometry inside the chord must still be found (it makes
+                        // the ray ambiguous), anything past its far end cannot
+                        // change the answer: the traversal stops there.
+                        return t_out;
                     }
-                    // A ray that misses every box under the mesh's BVH root
-                    // certainly misses the mesh: no mask lookup (two memory
-                    // misses in an 8 MiB grid) for what geometry already
-                    // knows. The mask judges only rays that could hit.
-                    if !accel.blas[x.blas as usize].may_hit(oo.into(), od.into()) {
-                        stats.mask_skips += 1;
-                        return f32::INFINITY;
-                    }
-                    let entry_p = unit_ray.at(chord.t_in);
-                    let pair = SpherePair::from_points(entry_p, unit_ray.at(chord.t_out));
-                    if !self.mask_hits(est, accel, &Ray::new(entry_p, od), &pair) {
-                        stats.mask_skips += 1;
-                        return f32::INFINITY;
-                    }
-                    let to_world = est.sphere.radius * x.scale;
-                    let (t_in, t_out) = (chord.t_in * to_world, chord.t_out * to_world);
-                    if t_in >= tmax {
-                        return f32::INFINITY;
-                    }
-                    if let Some(c) = &cand
-                        && t_in < c.t_out
-                        && c.t_in < t_out
-                    {
-                        // Two estimators' chords overlap: neither knows the
-                        // other's object, so the ray is traced for real.
-                        chords_overlap = true;
-                    }
-                    if cand.as_ref().is_none_or(|c| t_in < c.t_in) {
-                        cand = Some(Candidate {
-                            t_in,
-                            t_out,
-                            entry: EstimatorEntry {
-                                instance: inst,
-                                ray: Ray::new(entry_p, od),
-                                pair,
-                            },
-                        });
-                    }
-                    // Geometry inside the chord must still be found (it makes
-                    // the ray ambiguous), anything past its far end cannot
-                    // change the answer: the traversal stops there.
-                    return t_out;
                 }
             }
             match accel.item_hit(inst, o, d, tmax) {
