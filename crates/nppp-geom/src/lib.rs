@@ -5,6 +5,7 @@
 //! Everything here is plain data and pure functions so that the renderer,
 //! the data generator and the estimator runtime agree bit for bit.
 
+pub mod atan2;
 pub mod frame;
 pub mod rng;
 pub mod sampling;

@@ -109,7 +109,7 @@ pub fn point_to_uv(p: Vec3) -> Vec2 {
     } else {
         1.0
     };
-    let mut phi = p.y.atan2(p.x);
+    let mut phi = crate::atan2::atan2(p.y, p.x);
     if phi < 0.0 {
         phi += TAU;
     }
