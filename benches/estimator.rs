@@ -202,6 +202,14 @@ fn noise(c: &mut Criterion) {
             out[15]
         })
     });
+    // The whole row from one 64-bit draw (`SampleRng::fill_normals`), as
+    // the renderer draws a decoder row's noise.
+    g.bench_function("ziggurat_row", |b| {
+        b.iter(|| {
+            rng.fill_normals(&mut out);
+            out[15]
+        })
+    });
     // rand_distr's StandardNormal for f32, which SampleRng::normal used
     // before: an f64 ziggurat on a 64-bit draw (two PCG32 steps).
     g.bench_function("rand_distr_f64_ziggurat", |b| {

@@ -56,6 +56,15 @@ impl SampleRng {
         crate::ziggurat::standard_normal(|| self.0.next_u32())
     }
 
+    /// Fills `out` with standard normal variates, drawn together from one
+    /// 64-bit draw of this stream ([`crate::ziggurat::fill_standard_normals`]):
+    /// a decoder row's noise.
+    #[inline]
+    pub fn fill_normals(&mut self, out: &mut [f32]) {
+        let key = self.next_u64();
+        crate::ziggurat::fill_standard_normals(key, out);
+    }
+
     pub fn next_u64(&mut self) -> u64 {
         self.0.random()
     }

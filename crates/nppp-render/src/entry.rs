@@ -85,7 +85,7 @@ impl EntryBatch {
                                 sampler.latent_stochastic(&entry.pair, u, z);
                             }
                         }
-                        noise.iter_mut().for_each(|v| *v = rng.normal());
+                        rng.fill_normals(noise);
                     };
                     let decoded = sampler.sample_batch(
                         &mut self.decode,
@@ -109,8 +109,7 @@ impl EntryBatch {
                         (est.entry_nee.is_picked(), est.surface)
                     {
                         let noise = |k: usize, r: &mut [f32]| {
-                            let rng = &mut paths[entries[rows[k]].0].rng;
-                            r.iter_mut().for_each(|v| *v = rng.normal());
+                            paths[entries[rows[k]].0].rng.fill_normals(r);
                         };
                         if let Some(verts) =
                             sampler.sample_vertices(&mut self.decode, noise, &mut stats.repairs)
