@@ -56,7 +56,7 @@ pub struct GenArgs {
     #[arg(long, requires = "material")]
     pub mesh: Option<String>,
     /// Shade an OBJ --mesh with its vertex normals (the scene format's "smooth": true).
-    #[arg(long, requires = "mesh")]
+    #[arg(long, requires = "mesh", conflicts_with = "scene")]
     pub smooth: bool,
     /// The material for --mesh: scene-format JSON, e.g.
     /// '{"type": "diffuse", "albedo": [0.8, 0.6, 0.35]}', or a preset: white, gold, mirror, glass.
@@ -178,18 +178,30 @@ pub fn run(a: &GenArgs) -> Result<()> {
     };
     let threads = rayon::current_num_threads();
     let s = obj.sphere;
-    eprintln!(
+    nppp_files::note!(
         "gen: mesh \"{}\" ({} triangles, {:016x}), material \"{}\" ({:016x}), BVH built in {build:.2}s",
-        obj.mesh_name, obj.triangles, obj.mesh_hash, obj.material_name, obj.material_hash
+        obj.mesh_name,
+        obj.triangles,
+        obj.mesh_hash,
+        obj.material_name,
+        obj.material_hash
     );
-    eprintln!(
+    nppp_files::note!(
         "gen: sphere centre [{} {} {}] radius {}; {} rays x k = {}, seed {}, cap {} bounces, {threads} threads",
-        s.center.x, s.center.y, s.center.z, s.radius, a.rays, a.k, a.seed, max_internal_bounces
+        s.center.x,
+        s.center.y,
+        s.center.z,
+        s.radius,
+        a.rays,
+        a.k,
+        a.seed,
+        max_internal_bounces
     );
     if let (Some(sh), Some(r)) = (a.shard, &shard_rays) {
-        eprintln!(
+        nppp_files::note!(
             "gen: shard {sh}: rays {}..{} (merge the shards with `nppp merge`)",
-            r.start, r.end
+            r.start,
+            r.end
         );
     }
 
@@ -216,24 +228,26 @@ pub fn run(a: &GenArgs) -> Result<()> {
     let report = report?;
     let (st, sum) = (&report.stats, &report.summary);
     let t = st.mean_throughput();
-    println!("{}", sum.path.display());
-    println!(
+    nppp_files::say!("{}", sum.path.display());
+    nppp_files::say!(
         "  rays        {} ({:.1}% hit the mesh)",
         st.rays,
         100.0 * st.hit_fraction()
     );
-    println!(
+    nppp_files::say!(
         "  exits       {} ({} zero-throughput, {} of them at the bounce cap), mean bounces {:.3}",
         st.exits,
         st.zero_exits,
         st.capped_exits,
         st.mean_bounces()
     );
-    println!(
+    nppp_files::say!(
         "  mean exit throughput [{:.4} {:.4} {:.4}]",
-        t[0], t[1], t[2]
+        t[0],
+        t[1],
+        t[2]
     );
-    println!(
+    nppp_files::say!(
         "  vertices    {}",
         if obj.header(&cfg).vertices {
             "each exit carries its walk's picked vertex (next-event estimation through the estimator: `nppp train` adds a vertex head)"
@@ -242,7 +256,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
         }
     );
     let rate = nppp_files::format_rate;
-    println!(
+    nppp_files::say!(
         "  time        {:.2}s: {}, {}, {} in the walks ({threads} threads)",
         st.seconds,
         rate(st.exits_per_second(), "exits"),
@@ -251,13 +265,13 @@ pub fn run(a: &GenArgs) -> Result<()> {
     );
     // A run shorter than the clock's tick has no CPU rate to speak of.
     if let Some(cpu) = gen_cpu.filter(|c| *c > 0.0) {
-        println!(
+        nppp_files::say!(
             "  CPU time    {cpu:.2}s: {} per CPU-second ({:.2} of {threads} threads busy on average)",
             rate(st.exits as f64 / cpu, "exits").trim_end_matches("/s"),
             cpu / st.seconds.max(1e-9)
         );
     }
-    println!(
+    nppp_files::say!(
         "  file        {} in {} chunks, {:.2} bytes/exit ({:.2} before compression)",
         nppp_files::format_bytes(sum.file_bytes),
         sum.chunks,
@@ -265,14 +279,14 @@ pub fn run(a: &GenArgs) -> Result<()> {
         sum.raw_bytes as f64 / st.exits.max(1) as f64
     );
     if st.exits > 0 && st.zero_exits == st.exits {
-        eprintln!(
+        nppp_files::note!(
             "warning: every one of the {} exits has zero throughput: the material absorbs all \
              light or is an emitter (which reflects nothing). An estimator trained on this data \
              renders the object black; pick a reflecting instance",
             st.exits
         );
     } else if st.exits > 0 && st.capped_exits as f64 > 0.05 * st.exits as f64 {
-        eprintln!(
+        nppp_files::note!(
             "warning: {:.0}% of the exits stopped at the cap of {} internal bounces and count as \
              absorbed: raise --max-internal-bounces",
             100.0 * st.capped_exits as f64 / st.exits as f64,
@@ -280,14 +294,14 @@ pub fn run(a: &GenArgs) -> Result<()> {
         );
     }
     if st.repaired_exits > 0 {
-        eprintln!(
+        nppp_files::note!(
             "warning: {} exits had a non-finite throughput or radiance and were stored as zero (a BSDF bug)",
             st.repaired_exits
         );
     }
     if st.exits > 0 {
         let exits = THESIS_RAYS as f64 * st.hit_fraction() * THESIS_K as f64;
-        println!(
+        nppp_files::say!(
             "  projection  {THESIS_RAYS} rays x k = {THESIS_K}: {:.1} M exits, {} and {:.1} min at this rate",
             exits / 1e6,
             nppp_files::format_bytes((exits * sum.bytes_per_exit()) as u64),
@@ -299,7 +313,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
         let m = measure_bvh(&obj, a.seed ^ 0x5eed_b7a5, 1 << 18, 2.0);
         let bvh_cpu = cpu_since(cpu0);
         let queries = (st.exits + st.bounce_sum + st.rays) as f64;
-        println!(
+        nppp_files::say!(
             "  bare BVH    {:.2} M closest-hit rays/s on random chords ({:.1}% hit, {threads} threads)",
             m.rays_per_second() / 1e6,
             100.0 * m.hits as f64 / m.rays.max(1) as f64
@@ -316,7 +330,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
                 "per second",
             ),
         };
-        println!(
+        nppp_files::say!(
             "  ratio       walks: {:.2} M queries {basis} = {:.0}% of the bare BVH's {:.2} M ({:.2} queries per exit: entry hit + bounces)",
             walk_rate / 1e6,
             100.0 * walk_rate / bvh_rate,
@@ -384,7 +398,13 @@ fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
     };
     let (material_name, material_json) = material_spec(material_arg)?;
     let material = nppp_scene::parse_material(&material_json, "--material")?;
-    let (mesh_name, mesh) = match procedural_spec(mesh_arg)? {
+    let procedural = procedural_spec(mesh_arg)?;
+    // Only an OBJ file has vertex normals to shade with.
+    ensure!(
+        !a.smooth || (procedural.is_none() && !mesh_arg.trim_start().starts_with('{')),
+        "--smooth: --mesh {mesh_arg} has no vertex normals to shade with (it applies to an OBJ file)"
+    );
+    let (mesh_name, mesh) = match procedural {
         Some(p) => {
             let m = p.build().with_context(|| format!("--mesh {mesh_arg}"))?;
             (
@@ -453,9 +473,10 @@ fn mesh_spec(s: &str, smooth: bool) -> Result<(String, String)> {
     }
     let path = Path::new(s);
     ensure!(
-        path.is_file(),
+        path.exists(),
         "--mesh {s}: no such file (expected an OBJ file, `builtin`, `procedural:TYPE` or a JSON mesh object)"
     );
+    nppp_files::check_regular(path).with_context(|| format!("--mesh {s}"))?;
     let abs = std::path::absolute(path).with_context(|| format!("--mesh {s}"))?;
     let name = path
         .file_stem()

@@ -95,7 +95,7 @@ fn main() {
         unsafe { nppp_nn::backend::single_threaded_gemm() };
     }
     if let Err(e) = run(cli) {
-        eprintln!("error: {e:#}");
+        nppp_files::note!("error: {e:#}");
         std::process::exit(1);
     }
 }
@@ -150,10 +150,12 @@ impl Threads {
 fn stop_training_on_interrupt() -> Result<()> {
     ctrlc::set_handler(|| {
         if nppp_nn::in_training_loop() && !nppp_nn::stop_requested() {
-            eprintln!("\ninterrupt: saving a checkpoint after this step (again to quit at once)");
+            nppp_files::note!(
+                "\ninterrupt: saving a checkpoint after this step (again to quit at once)"
+            );
             nppp_nn::request_stop();
         } else {
-            eprintln!("\ninterrupted");
+            nppp_files::note!("\ninterrupted");
             nppp_files::remove_pending_temp_files();
             std::process::exit(130);
         }
@@ -166,7 +168,7 @@ fn stop_training_on_interrupt() -> Result<()> {
 /// removed, then the command exits with status 130.
 fn clean_up_on_interrupt() -> Result<()> {
     ctrlc::set_handler(|| {
-        eprintln!("\ninterrupted");
+        nppp_files::note!("\ninterrupted");
         nppp_files::remove_pending_temp_files();
         std::process::exit(130);
     })
@@ -214,7 +216,7 @@ fn run(cli: Cli) -> Result<()> {
                     print_summary(&format!("  curves      {}", names.join(", ")))
                 }
                 Err(e) => {
-                    eprintln!("note: training curves not drawn: {e:#}");
+                    nppp_files::note!("note: training curves not drawn: {e:#}");
                     Ok(())
                 }
             }

@@ -132,7 +132,7 @@ fn merge_render(a: &MergeArgs) -> Result<()> {
     let h = &merged.header;
     let m = img.mean();
     let dropped = merged.dropped_samples();
-    eprintln!(
+    nppp_files::note!(
         "{}: {} parts of {} ({}x{} spp {} M {} seed {}), {:.2}s rendering in all, mean rgb [{:.4} {:.4} {:.4}]{}",
         a.out.display(),
         a.parts.len(),
@@ -160,7 +160,7 @@ fn merge_data(a: &MergeArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("--out {}: {e}", a.out.display()))?;
     let parts: Vec<&Path> = a.parts.iter().map(|p| p.as_path()).collect();
     let s = nppp_estimator::shard::merge_datasets(&parts, &a.out)?;
-    eprintln!(
+    nppp_files::note!(
         "{}: {} parts, {} rays ({} hits, {} exits) in {} chunks, {}",
         s.path.display(),
         a.parts.len(),

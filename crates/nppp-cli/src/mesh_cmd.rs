@@ -49,7 +49,7 @@ pub fn run(a: &MeshArgs) -> Result<()> {
     };
     nppp_scene::procedural::write_obj(&tri, &a.out)
         .with_context(|| format!("writing {}", a.out.display()))?;
-    eprintln!(
+    nppp_files::note!(
         "{}: {} vertices, {} triangles",
         a.out.display(),
         m.positions.len(),

@@ -64,8 +64,8 @@ pub struct TrainingLog {
 
 impl TrainingLog {
     pub fn read(path: &Path) -> Result<Self> {
-        let text =
-            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let text = nppp_files::read_regular_to_string(path)
+            .with_context(|| format!("reading {}", path.display()))?;
         let mut lines = text.lines();
         let header = lines
             .next()

@@ -406,10 +406,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         && !matches!(a.estimators, EstimatorChoice::Off | EstimatorChoice::Auto)
         && settings.estimator_min_bounces >= settings.max_bounces
     {
-        eprintln!(
+        nppp_files::note!(
             "warning: P = {} >= M = {}: no path can reach an estimator after P bounces, so this \
              render is plain path tracing (lower --min-bounces to use the estimators)",
-            settings.estimator_min_bounces, settings.max_bounces
+            settings.estimator_min_bounces,
+            settings.max_bounces
         );
     }
     let t0 = std::time::Instant::now();
@@ -418,20 +419,20 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         EstimatorChoice::Neural | EstimatorChoice::Auto => EstimatorMode::Neural,
         EstimatorChoice::Oracle => EstimatorMode::Oracle,
         EstimatorChoice::CostFloor => {
-            eprintln!(
+            nppp_files::note!(
                 "warning: --estimators cost-floor ends every path at its first estimator entry: the image is not an estimate of the scene (timing only)"
             );
             EstimatorMode::CostFloor
         }
         EstimatorChoice::FreeExits => {
-            eprintln!(
+            nppp_files::note!(
                 "warning: --estimators free-exits answers every estimator entry with a free exit straight through the object: the image is not an estimate of the scene (timing only)"
             );
             EstimatorMode::FreeExits
         }
     };
     if a.entry_nee != EntryNeeChoice::Off && (!has_estimators || mode == EstimatorMode::Off) {
-        eprintln!(
+        nppp_files::note!(
             "warning: --entry-nee does nothing here: {}",
             if has_estimators {
                 "--estimators off renders plain path tracing"
@@ -458,7 +459,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         );
     }
     if instrument && a.decoder != DecoderChoice::Cpu {
-        eprintln!(
+        nppp_files::note!(
             "warning: --decoder does nothing here: the cost floor and free exits decode nothing"
         );
     }
@@ -520,9 +521,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                     ..
                 } = &est.model
                 {
-                    eprintln!(
+                    nppp_files::note!(
                         "free exits: {name} continues with throughput [{:.3} {:.3} {:.3}] after {} internal bounces",
-                        x.throughput.x, x.throughput.y, x.throughput.z, x.bounces
+                        x.throughput.x,
+                        x.throughput.y,
+                        x.throughput.z,
+                        x.bounces
                     );
                 }
             }
@@ -587,11 +591,14 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         );
         plan_seconds = t.elapsed().as_secs_f64();
         for line in decision.describe(&names) {
-            eprintln!("auto: {line}");
+            nppp_files::note!("auto: {line}");
         }
-        eprintln!(
+        nppp_files::note!(
             "auto: pilot {:.2} s ({} samples at {}x{})",
-            p.pilot_seconds, decision.samples, decision.width, decision.height
+            p.pilot_seconds,
+            decision.samples,
+            decision.width,
+            decision.height
         );
         if !p.segments.is_empty() {
             let parts: Vec<String> = p
@@ -607,7 +614,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                     format!("{what} {} spp", s.sample_count())
                 })
                 .collect();
-            eprintln!(
+            nppp_files::note!(
                 "auto: confirmed at full resolution with samples 0..{} of {} ({}), {:.2} s, kept in the image",
                 p.rest_start(),
                 settings.spp,
@@ -638,7 +645,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             seconds: stats.seconds + plan_seconds,
         };
         nppp_render::render_part::write_part(&a.out, &header, &film)?;
-        eprintln!(
+        nppp_files::note!(
             "{}: render part (samples {}..{} of {}) of {}x{} M {} in {:.2}s (scene build {:.2}s){}",
             a.out.display(),
             samples.start,
@@ -680,7 +687,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     let m = img.mean();
     if let Some(e) = &rs.estimators {
         let st = &stats.estimators;
-        eprintln!(
+        nppp_files::note!(
             "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {}, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped{}",
             a.estimators,
             e.min_bounces,
@@ -701,10 +708,10 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             }
         );
         for w in estimator_warnings(st) {
-            eprintln!("warning: {w}");
+            nppp_files::note!("warning: {w}");
         }
     }
-    eprintln!(
+    nppp_files::note!(
         "traced: {:.3} M rays, {:.3} M shadow rays, {:.3} M BVH node visits ({:.3} M by camera rays, {:.3} M leaves by later rays)",
         stats.work.rays as f64 / 1e6,
         stats.work.shadow_rays as f64 / 1e6,
@@ -712,11 +719,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         stats.work.camera_node_visits as f64 / 1e6,
         stats.work.leaf_visits as f64 / 1e6
     );
-    eprintln!(
+    nppp_files::note!(
         "work: {}",
         nppp_render::auto::describe_work(&stats.work, &stats.estimators)
     );
-    eprintln!(
+    nppp_files::note!(
         "{}: {}x{} spp {} M {} in {:.2}s (scene build {:.2}s), {:.3} M samples/s, mean rgb [{:.4} {:.4} {:.4}]{}",
         a.out.display(),
         img.width,
@@ -745,7 +752,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                     .unwrap_or_default()
             )
         })?;
-        eprintln!(
+        nppp_files::note!(
             "error vs {}: relMSE {:.5}, relMSE (brightest 0.1% dropped) {:.5}, MAPE {:.4}, RMSE {:.5}; {:.2}s",
             a.reference
                 .as_ref()

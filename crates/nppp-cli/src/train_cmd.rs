@@ -60,15 +60,15 @@ pub struct TrainArgs {
     pub backend: BackendArg,
     /// Length of the run in optimizer steps (default 24000: about 12 minutes
     /// on 2 cores); the learning-rate schedule follows it.
-    #[arg(long, conflicts_with = "epochs")]
+    #[arg(long, conflicts_with = "epochs", value_parser = steps_at_least_one)]
     pub steps: Option<u64>,
     /// Length of the run in epochs (one epoch = one pass over the training
     /// hit rays), instead of --steps.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one)]
     pub epochs: Option<usize>,
     /// Stop once this many steps are done in total, as if interrupted: the
     /// schedule still follows the run's length, and --resume continues it.
-    #[arg(long)]
+    #[arg(long, value_parser = steps_at_least_one)]
     pub stop_after: Option<u64>,
     /// Training-time budget of this invocation in minutes (0 = none). Once
     /// 300 steps are timed, a run that would not fit is shortened so that it
@@ -85,16 +85,16 @@ pub struct TrainArgs {
     #[arg(long)]
     pub overwrite: bool,
     /// Input rays per step (hits, for the Chamfer term).
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one)]
     pub batch: Option<usize>,
     /// Exits per ray per step (a random subset of the file's k).
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one)]
     pub k: Option<usize>,
     /// Rays (hits and misses) per step for the mask term.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one)]
     pub mask_batch: Option<usize>,
     /// Adam learning rate.
-    #[arg(long)]
+    #[arg(long, value_parser = positive_rate)]
     pub lr: Option<f64>,
     /// Weight of the energy-distance term added to Chamfer (0 = Chamfer only;
     /// default 1).
@@ -104,10 +104,10 @@ pub struct TrainArgs {
     #[arg(long)]
     pub seed: Option<u64>,
     /// Every n-th ray of the file is held out for evaluation.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_two)]
     pub holdout_every: Option<usize>,
     /// Steps per epoch (default: one pass over the training hit rays).
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one)]
     pub steps_per_epoch: Option<usize>,
     /// Held-out hit rays scored at the end of every epoch.
     #[arg(long, value_parser = at_least_one)]
@@ -149,6 +149,8 @@ fn count_in(s: &str, range: std::ops::RangeInclusive<usize>) -> Result<usize, St
         .map_err(|_| format!("\"{s}\" is not a whole number"))?;
     if range.contains(&v) {
         Ok(v)
+    } else if *range.end() == usize::MAX {
+        Err(format!("must be at least {}", range.start()))
     } else {
         Err(format!(
             "{v} is out of range: {} to {}",
@@ -168,6 +170,26 @@ fn network_size(s: &str) -> Result<usize, String> {
 /// perfect score of 0).
 fn at_least_one(s: &str) -> Result<usize, String> {
     count_in(s, 1..=usize::MAX)
+}
+
+/// A step count: 0 steps would train nothing and save no checkpoint.
+fn steps_at_least_one(s: &str) -> Result<u64, String> {
+    count_in(s, 1..=usize::MAX).map(|v| v as u64)
+}
+
+/// `--holdout-every`: every n-th ray held out, so n = 1 would hold out all.
+fn at_least_two(s: &str) -> Result<usize, String> {
+    count_in(s, 2..=usize::MAX)
+}
+
+/// A learning rate: finite and above 0.
+fn positive_rate(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|_| format!("\"{s}\" is not a number"))?;
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("{v} must be a positive finite number"))
+    }
 }
 
 impl TrainArgs {
@@ -235,7 +257,7 @@ pub struct BakeArgs {
     #[arg(long)]
     pub no_eval: bool,
     /// Held-out hit rays scored.
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = 512, value_parser = at_least_one)]
     pub eval_rays: usize,
     /// No progress bars.
     #[arg(long)]

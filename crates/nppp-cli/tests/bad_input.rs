@@ -1697,3 +1697,259 @@ fn extreme_sample_ranges_and_thread_counts() {
     assert!(!out.exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Runs `nppp` with `args`, killing it after `limit`: for inputs that once
+/// made it wait forever. `None` when it had to be killed.
+fn nppp_within(args: &[&OsStr], limit: Duration) -> Option<Output> {
+    use std::process::Stdio;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_nppp"))
+        .args(args)
+        .env("RUST_BACKTRACE", "0")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("cannot run nppp");
+    let start = std::time::Instant::now();
+    while start.elapsed() < limit {
+        if child.try_wait().expect("waiting for nppp").is_some() {
+            return Some(child.wait_with_output().expect("reading nppp's output"));
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    None
+}
+
+/// A named pipe as an input blocked `nppp` forever in `open` (the
+/// regular-file check came after it), and a training log that is a device
+/// was read until memory ran out (adversarial pass of 2026-11-27).
+#[cfg(target_os = "linux")]
+#[test]
+fn named_pipes_and_devices_are_refused_without_waiting() {
+    let dir = scratch("named-pipes");
+    let pipe = dir.join("pipe.json");
+    let made = Command::new("mkfifo").arg(&pipe).status();
+    if !made.is_ok_and(|s| s.success()) {
+        return;
+    }
+    let out = dir.join("out.exr");
+    let data = dir.join("data.nppd");
+    let (tiny, model) = (file("ok_tiny.json"), dir.join("model"));
+    let cases: Vec<(&str, Vec<&OsStr>)> = vec![
+        (
+            "render",
+            vec![
+                "render".as_ref(),
+                pipe.as_os_str(),
+                "--out".as_ref(),
+                out.as_os_str(),
+            ],
+        ),
+        ("info", vec!["info".as_ref(), pipe.as_os_str()]),
+        (
+            "render --reference",
+            vec![
+                "render".as_ref(),
+                tiny.as_os_str(),
+                "--reference".as_ref(),
+                pipe.as_os_str(),
+                "--out".as_ref(),
+                out.as_os_str(),
+            ],
+        ),
+        (
+            "train --data",
+            vec![
+                "train".as_ref(),
+                "--data".as_ref(),
+                pipe.as_os_str(),
+                "--out".as_ref(),
+                model.as_os_str(),
+            ],
+        ),
+        (
+            "gen --mesh",
+            vec![
+                "gen".as_ref(),
+                "--mesh".as_ref(),
+                pipe.as_os_str(),
+                "--material".as_ref(),
+                "white".as_ref(),
+                "--out".as_ref(),
+                data.as_os_str(),
+            ],
+        ),
+    ];
+    for (what, args) in &cases {
+        let o = nppp_within(args, Duration::from_secs(60))
+            .unwrap_or_else(|| panic!("{what} on a named pipe did not return"));
+        assert_clean_error(what, &o, &["pipe.json", "not a regular file"]);
+    }
+    let zero = Path::new("/dev/zero");
+    if zero.exists() {
+        let model = dir.join("zero-model");
+        std::fs::create_dir_all(&model).unwrap();
+        std::os::unix::fs::symlink(zero, model.join("log.csv")).unwrap();
+        let svg = dir.join("log.svg");
+        let o = nppp_within(
+            &[
+                "plot-log".as_ref(),
+                model.as_os_str(),
+                "--out".as_ref(),
+                svg.as_os_str(),
+            ],
+            Duration::from_secs(60),
+        )
+        .expect("plot-log of /dev/zero did not return");
+        assert_clean_error("plot-log /dev/zero", &o, &["log.csv", "not a regular file"]);
+        assert!(!svg.exists());
+    }
+    assert!(!out.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Counts of 0 that trained nothing (`--steps 0` said "next: nppp bake" and
+/// saved no checkpoint), silently meant the default (`--epochs 0`) or scored
+/// nothing as a perfect score (`bake --eval-rays 0`) are usage errors naming
+/// the flag; so is `--smooth` where there are no vertex normals.
+#[test]
+fn zero_counts_and_ignored_flags_are_usage_errors_naming_the_flag() {
+    let dir = scratch("zero-counts");
+    let data = file("data_valid.nppd");
+    let model = dir.join("model");
+    for (flag, value, needle) in [
+        ("--steps", "0", "must be at least 1"),
+        ("--stop-after", "0", "must be at least 1"),
+        ("--epochs", "0", "must be at least 1"),
+        ("--steps-per-epoch", "0", "must be at least 1"),
+        ("--batch", "0", "must be at least 1"),
+        ("--k", "0", "must be at least 1"),
+        ("--mask-batch", "0", "must be at least 1"),
+        ("--holdout-every", "1", "must be at least 2"),
+        ("--lr", "0", "positive finite"),
+        ("--lr", "inf", "positive finite"),
+    ] {
+        let o = nppp([
+            "train".as_ref(),
+            "--data".as_ref(),
+            data.as_os_str(),
+            "--out".as_ref(),
+            model.as_os_str(),
+            flag.as_ref(),
+            value.as_ref(),
+        ]);
+        common::assert_refused(&format!("train {flag} {value}"), &o, 2, &[flag, needle]);
+    }
+    let o = nppp([
+        "bake".as_ref(),
+        "--model".as_ref(),
+        model.as_os_str(),
+        "--out".as_ref(),
+        dir.join("m.nppp").as_os_str(),
+        "--eval-rays".as_ref(),
+        "0".as_ref(),
+    ]);
+    common::assert_refused(
+        "bake --eval-rays 0",
+        &o,
+        2,
+        &["--eval-rays", "must be at least 1"],
+    );
+    let o = nppp([
+        "gen".as_ref(),
+        "--mesh".as_ref(),
+        "builtin".as_ref(),
+        "--material".as_ref(),
+        "white".as_ref(),
+        "--smooth".as_ref(),
+        "--out".as_ref(),
+        dir.join("d.nppd").as_os_str(),
+    ]);
+    assert_clean_error(
+        "gen --smooth builtin",
+        &o,
+        &["--smooth", "no vertex normals"],
+    );
+    assert!(names_in(&dir).is_empty(), "{:?}", names_in(&dir));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// With stderr a closed pipe (`nppp render ... 2>&1 | head -0`), the first
+/// note panicked (exit status 101): an error still exits with 1, and a
+/// render goes on and writes its image.
+#[test]
+fn a_closed_stderr_is_not_a_panic() {
+    use std::process::Stdio;
+    let dir = scratch("closed-stderr");
+    let out = dir.join("out.exr");
+    let run = |args: &[&OsStr]| {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_nppp"))
+            .args(args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("cannot run nppp");
+        // The read end closes before the child has parsed its flags.
+        drop(child.stderr.take());
+        child.wait().expect("waiting for nppp").code()
+    };
+    let missing = dir.join("missing.json");
+    assert_eq!(run(&["render".as_ref(), missing.as_os_str()]), Some(1));
+    let scene = file("ok_tiny.json");
+    assert_eq!(
+        run(&[
+            "render".as_ref(),
+            scene.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str()
+        ]),
+        Some(0)
+    );
+    assert!(out.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A triangle with edges past about 4e9 (the loader accepts coordinates up
+/// to 1e15) overflowed its normal's squared length in f32: an emitter quad
+/// filling the view rendered black, and an OBJ of one such triangle was
+/// refused as "zero area".
+#[test]
+fn huge_triangles_render() {
+    let dir = scratch("huge-triangles");
+    let obj = dir.join("huge.obj");
+    std::fs::write(
+        &obj,
+        "v -2.2e9 -2.2e9 1e9\nv 0 2.2e9 1e9\nv 2.2e9 -2.2e9 1e9\nf 1 2 3\n",
+    )
+    .unwrap();
+    for (name, mesh) in [
+        (
+            "quad",
+            r#"{"quad": [[-2.2e9, -2.2e9, 1e9], [-2.2e9, 2.2e9, 1e9], [2.2e9, 2.2e9, 1e9], [2.2e9, -2.2e9, 1e9]]}"#.to_string(),
+        ),
+        ("obj", format!(r#"{{"obj": {:?}}}"#, obj.to_string_lossy())),
+    ] {
+        let scene = dir.join(format!("{name}.json"));
+        std::fs::write(
+            &scene,
+            format!(
+                r#"{{"camera": {{"position": [0, 0, 0], "look_at": [0, 0, 1], "fov_y_deg": 20, "width": 4, "height": 4}},
+ "materials": {{"lamp": {{"type": "emitter", "radiance": [1, 1, 1]}}}},
+ "meshes": {{"q": {mesh}}},
+ "instances": [{{"mesh": "q", "material": "lamp"}}], "render": {{"spp": 1, "max_bounces": 1}}}}"#
+            ),
+        )
+        .unwrap();
+        let out = dir.join(format!("{name}.exr"));
+        let o = nppp(["render".as_ref(), scene.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+        common::assert_ok(name, &o);
+        let img = nppp_render::image_io::read_exr(&out).unwrap();
+        assert!(
+            img.pixels.iter().all(|p| p.iter().all(|&c| (c - 1.0).abs() < 1e-4)),
+            "{name}: {:?}",
+            &img.pixels[..4]
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -15,16 +15,41 @@
 //! - [`crash_point`]: named points where the tests kill the process
 //!   (`NPPP_CRASH_AT=name`), to prove that every file survives a kill at
 //!   every step of a multi-file write (a model checkpoint).
-//! - [`open_regular`] / [`read_regular`]: every input file is opened
-//!   through these, which refuse what is not a regular file (a device such
-//!   as `/dev/zero` would be read until memory runs out, a folder gives a
-//!   misleading error).
+//! - [`open_regular`] / [`read_regular`] / [`check_regular`]: every input
+//!   file is opened through these, which refuse what is not a regular file
+//!   before opening it (a device such as `/dev/zero` would be read until
+//!   memory runs out, opening a named pipe waits for a writer forever, a
+//!   folder gives a misleading error).
 //! - [`available_memory`]: what a command may plan to allocate, so that a
 //!   flag or a file that claims gigabytes is refused with a message instead
 //!   of aborting on allocation.
+//! - [`note!`] and [`say!`]: `eprintln!` and `println!` that never panic
+//!   (a closed pipe made them end a render with exit code 101).
 //! - [`format_bytes`], [`format_rate`] and [`progress_style`]: the one way
 //!   every command prints sizes and rates (summaries and progress bars say
 //!   `0.229 M samples/s` alike).
+
+/// `eprintln!` that never panics. Notes and warnings on stderr are best
+/// effort: with stderr a closed pipe (`nppp render ... 2>&1 | head -5`),
+/// `eprintln!` panicked (exit code 101) in the middle of a render, where
+/// the command should go on and finish its files.
+#[macro_export]
+macro_rules! note {
+    ($($arg:tt)*) => {{
+        use ::std::io::Write as _;
+        let _ = ::std::writeln!(::std::io::stderr(), $($arg)*);
+    }};
+}
+
+/// `println!` that never panics (see [`note!`]): a command's summary on
+/// stdout, read by a pipe that may close early.
+#[macro_export]
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use ::std::io::Write as _;
+        let _ = ::std::writeln!(::std::io::stdout(), $($arg)*);
+    }};
+}
 
 use std::ffi::OsString;
 use std::fs::File;
@@ -68,10 +93,24 @@ pub const CRASH_ENV: &str = "NPPP_CRASH_AT";
 /// Opens an input file for reading, refusing anything but a regular file
 /// (a device, a pipe, a socket or a folder) with an error that says so.
 pub fn open_regular(path: &Path) -> io::Result<File> {
+    // Before opening: opening a named pipe blocks until a writer comes.
+    check_regular(path)?;
     let f = File::open(path)?;
-    let kind = f.metadata()?.file_type();
+    // And what was opened, should the name have changed in between.
+    regular_or_error(f.metadata()?.file_type())?;
+    Ok(f)
+}
+
+/// Refuses what is not a regular file, without opening it (see
+/// [`open_regular`]); for readers that open the file themselves (an EXR
+/// decoder).
+pub fn check_regular(path: &Path) -> io::Result<()> {
+    regular_or_error(std::fs::metadata(path)?.file_type())
+}
+
+fn regular_or_error(kind: std::fs::FileType) -> io::Result<()> {
     if kind.is_file() {
-        return Ok(f);
+        return Ok(());
     }
     let what = if kind.is_dir() {
         "a folder"
@@ -394,7 +433,7 @@ pub fn crash_point(name: &str) {
     if let Some(v) = std::env::var_os(CRASH_ENV)
         && v == name
     {
-        eprintln!("{CRASH_ENV}={name}: aborting here (crash test)");
+        crate::note!("{CRASH_ENV}={name}: aborting here (crash test)");
         std::process::abort();
     }
 }

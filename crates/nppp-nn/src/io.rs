@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
 use nppp_estimator::{DatasetHeader, DatasetReader, ExitTransform, VertexTransform};
 use nppp_geom::BoundingSphere;
@@ -158,12 +158,13 @@ pub fn load_dataset_where(
             path.display()
         );
     }
-    if !path.is_file() {
+    if !path.exists() {
         bail!(
             "training data {} does not exist (run `nppp gen` / `make data` first)",
             path.display()
         );
     }
+    nppp_files::check_regular(path).with_context(|| format!("training data {}", path.display()))?;
     let mut reader = DatasetReader::open(path)?;
     check_claims(path, &reader, share)?;
     let header = reader.header().clone();

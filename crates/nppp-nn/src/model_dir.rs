@@ -180,7 +180,8 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
         model_dir.display()
     );
     let sp = dir.join(files::STATE);
-    let text = fs::read_to_string(&sp).with_context(|| format!("reading {}", sp.display()))?;
+    let text = nppp_files::read_regular_to_string(&sp)
+        .with_context(|| format!("reading {}", sp.display()))?;
     #[derive(Deserialize)]
     struct Version {
         version: u32,
@@ -205,7 +206,7 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
             );
         };
         let p = dir.join(name);
-        let data = fs::read(&p).with_context(|| {
+        let data = nppp_files::read_regular(&p).with_context(|| {
             format!(
                 "{} is missing or unreadable: the checkpoint is damaged",
                 p.display()
@@ -232,7 +233,8 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
         .with_context(|| format!("{}", tc.display()))?;
     let mp = dir.join(files::META);
     let meta: ModelMeta = serde_json::from_str(
-        &fs::read_to_string(&mp).with_context(|| format!("reading {}", mp.display()))?,
+        &nppp_files::read_regular_to_string(&mp)
+            .with_context(|| format!("reading {}", mp.display()))?,
     )
     .with_context(|| format!("{} is corrupt", mp.display()))?;
     if meta.format != ModelMeta::FORMAT || meta.version != 1 {
@@ -252,7 +254,8 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
         );
     }
     let lp = dir.join(files::LOG);
-    let log = fs::read_to_string(&lp).with_context(|| format!("reading {}", lp.display()))?;
+    let log = nppp_files::read_regular_to_string(&lp)
+        .with_context(|| format!("reading {}", lp.display()))?;
     Ok(Some(Checkpoint {
         dir,
         state,

@@ -92,7 +92,7 @@ impl Blas {
             prim: h.prim,
             b1: h.b1,
             b2: h.b2,
-            ng: h.ng.normalize_or_zero(),
+            ng: nppp_geom::unit_normal(h.ng),
         })
     }
 

@@ -118,7 +118,7 @@ impl GenObject {
             .iter()
             .map(|t| {
                 let p = |k: usize| mesh.positions[t[k] as usize];
-                (p(1) - p(0)).cross(p(2) - p(0)).normalize_or_zero()
+                nppp_geom::unit_normal((p(1) - p(0)).cross(p(2) - p(0)))
             })
             .collect();
         Ok(Self {

@@ -99,6 +99,12 @@ pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
         path: path.into(),
         msg: e.to_string(),
     };
+    // The decoder opens the file itself: a pipe would block it, a device
+    // feed it forever.
+    nppp_files::check_regular(path).map_err(|e| ImageError::Read {
+        path: path.into(),
+        msg: e.to_string(),
+    })?;
     let img = exr::prelude::read_first_rgba_layer_from_file(
         path,
         |res: exr::math::Vec2<usize>, _| Image::new(res.width() as u32, res.height() as u32),

@@ -142,7 +142,7 @@ impl RenderScene {
                     .iter()
                     .map(|t| {
                         let p = |k: usize| m.positions[t[k] as usize];
-                        (p(1) - p(0)).cross(p(2) - p(0)).normalize_or_zero()
+                        nppp_geom::unit_normal((p(1) - p(0)).cross(p(2) - p(0)))
                     })
                     .collect()
             })
@@ -165,12 +165,14 @@ impl RenderScene {
                     let p = |k: usize| x.point_to_world(mesh.positions[t[k] as usize]);
                     let (v0, v1, v2) = (p(0), p(1), p(2));
                     let c = (v1 - v0).cross(v2 - v0);
-                    let area = 0.5 * c.length();
+                    // In f64: the squared length overflows f32 for edges
+                    // past about 4e9.
+                    let area = (0.5 * c.as_dvec3().length()) as f32;
                     light_tris.push(LightTriangle {
                         v0,
                         e1: v1 - v0,
                         e2: v2 - v0,
-                        normal: c.normalize_or_zero(),
+                        normal: nppp_geom::unit_normal(c),
                         area,
                         radiance,
                         offset_floor: offset_floor[ii],

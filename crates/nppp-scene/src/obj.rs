@@ -137,7 +137,8 @@ pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
     // Zero-area triangles are never hit: a file of nothing else renders as
     // nothing, like a file without faces.
     let has_area = |t: &[u32; 3]| {
-        let [a, b, c] = t.map(|i| positions[i as usize]);
+        // In f64: the squared length overflows f32 for edges past about 4e9.
+        let [a, b, c] = t.map(|i| positions[i as usize].as_dvec3());
         let n = (b - a).cross(c - a).length_squared();
         n > 0.0 && n.is_finite()
     };

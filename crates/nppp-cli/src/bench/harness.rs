@@ -78,7 +78,7 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
         .collect::<Result<_>>()?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let machine = Machine::probe();
-    eprintln!(
+    nppp_files::note!(
         "nppp bench ({}): {} scene(s), spp {:?}, reference {} spp, {} seed(s), resolution x{}, {} threads",
         plan.mode,
         paths.len(),
@@ -108,14 +108,14 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
     for r in &results {
         plots.extend(plot_scene(r, &a.out)?);
     }
-    eprintln!(
+    nppp_files::note!(
         "bench done in {:.0} s: {} and {}",
         total,
         md_path.display(),
         csv_path.display()
     );
     for p in plots {
-        eprintln!("  plot: {p}");
+        nppp_files::note!("  plot: {p}");
     }
     Ok(())
 }
@@ -190,7 +190,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         .iter()
         .map(|i| scene.meshes[i.mesh].triangles.len() as u64)
         .sum();
-    eprintln!(
+    nppp_files::note!(
         "[{name}] {width}x{height}, {} instances, {triangles_instanced} instanced triangles, scene built in {build_seconds:.2} s",
         scene.instances.len()
     );
@@ -279,7 +279,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
             }
             Ok(None) => skipped.push(("NPPP (all P)".into(), "skipped: no estimator".into())),
             Err(e) => {
-                eprintln!("[{name}] warning: the estimators do not load: {e}");
+                nppp_files::note!("[{name}] warning: the estimators do not load: {e}");
                 skipped.push((
                     "NPPP (all P)".into(),
                     format!("skipped: the estimator does not load: {e}"),
@@ -341,7 +341,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
                     .with_context(|| format!("{name}: comparing {} to the reference", c.label()))?;
                 let flip = flip_mean(&img, &reference);
                 let mean_ratio = image_sum(&img) / image_sum(&reference).max(1e-300);
-                eprintln!(
+                nppp_files::note!(
                     "[{name}] seed {seed} {:>4} spp {:<12} {:>8.3} s {:>7.3} M samples/s  relMSE {:.4e} (trimmed {:.4e})",
                     spp,
                     c.label(),

@@ -22,8 +22,8 @@ struct Curve {
 pub(super) fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
     use plotters::prelude::{BitMapBackend, IntoDrawingArea, SVGBackend};
     use std::collections::BTreeMap;
-    let text =
-        std::fs::read_to_string(csv).with_context(|| format!("reading {}", csv.display()))?;
+    let text = nppp_files::read_regular_to_string(csv)
+        .with_context(|| format!("reading {}", csv.display()))?;
     let mut lines = text.lines();
     let header: Vec<&str> = lines
         .next()
@@ -118,7 +118,7 @@ pub(super) fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
             &curves,
         )
         .with_context(|| format!("writing {}", png.display()))?;
-        eprintln!("{}, {}", svg.display(), png.display());
+        nppp_files::note!("{}, {}", svg.display(), png.display());
     }
     Ok(())
 }

@@ -87,7 +87,8 @@ pub(super) fn scene_name(path: &Path) -> String {
 /// Hash of everything a plain path-traced reference depends on in the scene:
 /// the file itself and the content of every mesh (OBJ files included).
 pub(super) fn scene_hash(path: &Path, scene: &nppp_scene::Scene) -> Result<String> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let bytes =
+        nppp_files::read_regular(path).with_context(|| format!("reading {}", path.display()))?;
     let mut h = nppp_scene::hash::Fnv1a::new();
     h.bytes(&bytes);
     for m in &scene.meshes {
@@ -109,30 +110,30 @@ pub(super) fn load_or_render_reference(
     let exr = dir.join("reference.exr");
     let json = dir.join("reference.json");
     if !a.fresh_reference && exr.is_file() && json.is_file() {
-        let text = std::fs::read_to_string(&json)
+        let text = nppp_files::read_regular_to_string(&json)
             .with_context(|| format!("reading {}", json.display()))?;
         match serde_json::from_str::<ReferenceMeta>(&text) {
             Ok(have) if have.same_settings(want) => {
                 let img = image_io::read_exr(&exr)
                     .with_context(|| format!("reading the cached reference {}", exr.display()))?;
                 if img.width == want.width && img.height == want.height {
-                    eprintln!(
+                    nppp_files::note!(
                         "[{name}] reference: cached {} ({} spp, settings match)",
                         exr.display(),
                         have.spp
                     );
                     return Ok((img, have, true));
                 }
-                eprintln!(
+                nppp_files::note!(
                     "[{name}] reference: {} has the wrong size; re-rendering",
                     exr.display()
                 );
             }
-            Ok(_) => eprintln!(
+            Ok(_) => nppp_files::note!(
                 "[{name}] reference: {} was made with other settings; re-rendering",
                 json.display()
             ),
-            Err(e) => eprintln!(
+            Err(e) => nppp_files::note!(
                 "[{name}] reference: {} is unreadable ({e}); re-rendering",
                 json.display()
             ),
@@ -141,9 +142,10 @@ pub(super) fn load_or_render_reference(
     // Two independent halves: their difference estimates the reference's own noise.
     let rs_ref = rs;
     let half = want.spp / 2;
-    eprintln!(
+    nppp_files::note!(
         "[{name}] reference: rendering PT M={} at {} spp (two halves of {half})...",
-        want.max_bounces, want.spp
+        want.max_bounces,
+        want.spp
     );
     let (ia, sa) = render_with(rs_ref, half, want.max_bounces, want.seeds[0]);
     let (ib, sb) = render_with(rs_ref, want.spp - half, want.max_bounces, want.seeds[1]);
@@ -169,9 +171,10 @@ pub(super) fn load_or_render_reference(
     let text = serde_json::to_string_pretty(&meta).context("serializing the reference settings")?;
     image_io::write_text(&json, &(text + "\n"))
         .with_context(|| format!("writing {}", json.display()))?;
-    eprintln!(
+    nppp_files::note!(
         "[{name}] reference: {:.1} s, noise floor relMSE {:.3e}",
-        meta.seconds, floor
+        meta.seconds,
+        floor
     );
     Ok((img, meta, false))
 }

@@ -101,7 +101,7 @@ fn train_on(
     if cfg.k > data.k {
         // Said even with --quiet when the user asked for that k.
         if !opts.quiet || opts.k.is_some() {
-            eprintln!(
+            nppp_files::note!(
                 "note: {} holds {} exits per ray, so each step uses k = {} (not {}); \
                  train_config.json records {}",
                 opts.data.display(),
@@ -298,7 +298,7 @@ fn train_on(
                 );
                 if pb.is_hidden() {
                     if !opts.quiet {
-                        eprintln!("{line}");
+                        nppp_files::note!("{line}");
                     }
                 } else {
                     pb.println(line);
@@ -403,7 +403,7 @@ fn train_on(
                 if !pb.is_hidden() {
                     pb.println(line);
                 } else if !opts.quiet {
-                    eprintln!("{line}");
+                    nppp_files::note!("{line}");
                 }
             } else if last_saved.is_some() {
                 // The folder is this run's: show the row at once (the
