@@ -47,7 +47,9 @@ pub fn run(a: &MeshArgs) -> Result<()> {
         positions: m.positions.clone(),
         triangles: m.triangles.clone(),
     };
-    nppp_scene::procedural::write_obj(&tri, &a.out)
+    // Into a new folder as render, gen and bake write theirs.
+    nppp_files::create_parent(&a.out)
+        .and_then(|_| nppp_scene::procedural::write_obj(&tri, &a.out))
         .with_context(|| format!("writing {}", a.out.display()))?;
     nppp_files::note!(
         "{}: {} vertices, {} triangles",

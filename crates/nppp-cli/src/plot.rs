@@ -322,7 +322,7 @@ pub fn plot_training_log(log: &Path, out: Option<&Path>) -> Result<Vec<PathBuf>>
                 &title,
                 &data,
             )?;
-            nppp_files::write_atomic(o, text.as_bytes())
+            nppp_files::create_parent(o).and_then(|_| nppp_files::write_atomic(o, text.as_bytes()))
         } else {
             let mut rgb = vec![0u8; (size.0 * size.1 * 3) as usize];
             draw_log(
@@ -337,7 +337,7 @@ pub fn plot_training_log(log: &Path, out: Option<&Path>) -> Result<Vec<PathBuf>>
             let mut w = enc.write_header().context("encoding the PNG")?;
             w.write_image_data(&rgb).context("encoding the PNG")?;
             w.finish().context("encoding the PNG")?;
-            nppp_files::write_atomic(o, &png_bytes)
+            nppp_files::create_parent(o).and_then(|_| nppp_files::write_atomic(o, &png_bytes))
         }
         .with_context(|| format!("writing {}", o.display()))?;
     }

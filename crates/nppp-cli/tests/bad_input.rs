@@ -1235,21 +1235,7 @@ fn valid_binary_fixtures_load() {
 // Fixture generation
 // ---------------------------------------------------------------------------
 
-/// CRC32 (IEEE), as the file formats use; bitwise, fixtures are tiny.
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut c = !0u32;
-    for &b in bytes {
-        c ^= b as u32;
-        for _ in 0..8 {
-            c = if c & 1 != 0 {
-                (c >> 1) ^ 0xEDB8_8320
-            } else {
-                c >> 1
-            };
-        }
-    }
-    !c
-}
+use common::crc32;
 
 fn le32(b: &[u8], at: usize) -> u32 {
     u32::from_le_bytes(b[at..at + 4].try_into().unwrap())

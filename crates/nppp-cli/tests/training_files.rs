@@ -596,6 +596,53 @@ fn damaged_checkpoints_are_refused_by_checksum() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A checkpoint's `meta.json` edited to a sphere of radius 0 or k = 0 (its
+/// checksum fixed up) reached the estimator's assembly and was refused
+/// there with a Rust debug dump and no file named; it is refused on
+/// loading, naming the file and how to rebuild the model.
+#[test]
+fn a_forged_meta_json_is_refused_naming_the_file() {
+    let dir = scratch("forged-meta");
+    let (_, model) = trained(&dir);
+    let mp = model.join("checkpoint/meta.json");
+    let sp = model.join("checkpoint/state.json");
+    let (meta, state) = (
+        std::fs::read_to_string(&mp).unwrap(),
+        std::fs::read_to_string(&sp).unwrap(),
+    );
+    for (what, edit, needle) in [
+        (
+            "radius 0",
+            &(|m: &mut serde_json::Value| m["dataset"]["sphere"]["radius"] = 0.0.into())
+                as &dyn Fn(&mut serde_json::Value),
+            "radius 0) is not finite with a positive radius",
+        ),
+        (
+            "k 0",
+            &|m: &mut serde_json::Value| m["dataset"]["k"] = 0.into(),
+            "k = 0",
+        ),
+    ] {
+        let mut m: serde_json::Value = serde_json::from_str(&meta).unwrap();
+        edit(&mut m);
+        let forged = serde_json::to_string_pretty(&m).unwrap();
+        std::fs::write(&mp, &forged).unwrap();
+        let mut st: serde_json::Value = serde_json::from_str(&state).unwrap();
+        for f in st["files"].as_array_mut().unwrap() {
+            if f["name"] == "meta.json" {
+                f["bytes"] = forged.len().into();
+                f["crc32"] = common::crc32(forged.as_bytes()).into();
+            }
+        }
+        std::fs::write(&sp, serde_json::to_string_pretty(&st).unwrap()).unwrap();
+        let out = dir.join("e.nppp");
+        let o = nppp(bake_args(&model, &out, &["--no-eval"]));
+        assert_error(what, &o, &["checkpoint/meta.json", needle, "nppp train"]);
+        assert!(!out.exists());
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn train_refuses_a_folder_that_is_not_a_model() {
     let dir = scratch("not-a-model");

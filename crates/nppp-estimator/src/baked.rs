@@ -266,7 +266,8 @@ impl BakedEstimator {
     pub fn check(&self) -> Result<(), String> {
         let m = &self.meta;
         if !(m.sphere.center.is_finite() && m.sphere.radius.is_finite() && m.sphere.radius > 0.0) {
-            return Err(format!("bounding sphere {:?} is not finite with a positive radius", m.sphere));
+            let (c, r) = (m.sphere.center, m.sphere.radius);
+            return Err(format!("bounding sphere (centre [{} {} {}], radius {r}) is not finite with a positive radius", c.x, c.y, c.z));
         }
         self.latent.validate().map_err(|e| format!("latent grid: {e}"))?;
         self.mask.validate().map_err(|e| format!("mask grid: {e}"))?;

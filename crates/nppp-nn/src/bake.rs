@@ -428,7 +428,8 @@ pub fn assemble(
         }),
         (None, None) => None,
         _ => bail!(
-            "the model folder's vertex head and its meta.json's vertex_transform do not come              together (one is missing): retrain with `nppp train`"
+            "the model folder's vertex head and its meta.json's vertex_transform do not come \
+             together (one is missing): retrain with `nppp train`"
         ),
     };
     let baked = BakedEstimator::from_f32_grids_with_mask_bits(

@@ -245,6 +245,9 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
             meta.version
         );
     }
+    if let Err(what) = meta.dataset.check() {
+        bail!("{}: dataset: {what}; {rebuild}", mp.display());
+    }
     if meta.input_features != INPUT_FEATURES {
         bail!(
             "{}: the model was trained on {} input features, this build computes {}; {rebuild}",

@@ -98,3 +98,20 @@ pub const SMALL_TRAIN_FLAGS: &[&str] = &[
     "--seed",
     "3",
 ];
+
+/// CRC32 (IEEE), as the file formats and checkpoints use; bitwise, the
+/// files the tests forge are small.
+pub fn crc32(bytes: &[u8]) -> u32 {
+    let mut c = !0u32;
+    for &b in bytes {
+        c ^= b as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 {
+                (c >> 1) ^ 0xEDB8_8320
+            } else {
+                c >> 1
+            };
+        }
+    }
+    !c
+}

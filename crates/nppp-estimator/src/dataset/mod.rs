@@ -485,13 +485,25 @@ fn header_bytes(h: &DatasetHeader) -> Vec<u8> {
     serde_json::to_vec(&j).unwrap_or_default()
 }
 
+impl DatasetHeader {
+    /// What a data file's header must hold (a k the format allows, a finite
+    /// sphere with a positive radius); a model folder's `meta.json` carries
+    /// a copy, checked with this before it is baked.
+    pub fn check(&self) -> Result<(), String> {
+        check_header(self)
+    }
+}
+
 fn check_header(h: &DatasetHeader) -> Result<(), String> {
     if h.k == 0 || h.k > MAX_K {
         return Err(format!("k = {} (1 to {MAX_K} allowed)", h.k));
     }
     let s = &h.sphere;
     if !(s.center.is_finite() && s.radius.is_finite() && s.radius > 0.0) {
-        return Err(format!("bounding sphere {s:?} is not finite with a positive radius"));
+        return Err(format!(
+            "bounding sphere (centre [{} {} {}], radius {}) is not finite with a positive radius",
+            s.center.x, s.center.y, s.center.z, s.radius
+        ));
     }
     Ok(())
 }
