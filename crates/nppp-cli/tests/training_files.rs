@@ -643,6 +643,31 @@ fn a_forged_meta_json_is_refused_naming_the_file() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A fresh run that diverges before its first checkpoint left the folder it
+/// created behind, holding only its lock file; the folder is removed, and a
+/// folder that existed before the run is kept.
+#[test]
+fn a_fresh_run_that_fails_leaves_no_folder_behind() {
+    let dir = scratch("diverged");
+    let data = dir.join("data.nppd");
+    write_data(&data, 400, 4);
+    let out = dir.join("model");
+    let mut args = small_train(&data, &out, "1");
+    set_flag(&mut args, "--lr", "1e30");
+    let o = nppp(&args);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(
+        !out.exists(),
+        "left {:?}",
+        std::fs::read_dir(&out).map(|d| d.count())
+    );
+    std::fs::create_dir_all(&out).unwrap();
+    let o = nppp(&args);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+    assert!(out.is_dir());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn train_refuses_a_folder_that_is_not_a_model() {
     let dir = scratch("not-a-model");

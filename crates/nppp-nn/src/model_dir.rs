@@ -337,7 +337,8 @@ pub fn check_fresh_out(out: &Path) -> Result<()> {
 /// Takes the model directory for this process (creating it if needed): two
 /// runs writing one directory would interleave their checkpoints. The lock
 /// is the OS's (`flock`), so a killed run never leaves a stale one.
-pub fn lock_model_dir(out: &Path) -> Result<fs::File> {
+pub fn lock_model_dir(out: &Path) -> Result<ModelDirLock> {
+    let created = !out.exists();
     fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let p = out.join(files::LOCK);
     let f = fs::OpenOptions::new()
@@ -347,7 +348,11 @@ pub fn lock_model_dir(out: &Path) -> Result<fs::File> {
         .open(&p)
         .with_context(|| format!("opening {}", p.display()))?;
     match f.try_lock() {
-        Ok(()) => Ok(f),
+        Ok(()) => Ok(ModelDirLock {
+            _file: f,
+            dir: out.to_path_buf(),
+            created,
+        }),
         Err(fs::TryLockError::WouldBlock) => bail!(
             "{}: another `nppp train` is writing this model directory; wait for it, or train \
              into another --out",
@@ -355,6 +360,34 @@ pub fn lock_model_dir(out: &Path) -> Result<fs::File> {
         ),
         Err(fs::TryLockError::Error(e)) => {
             Err(e).with_context(|| format!("locking {}", p.display()))
+        }
+    }
+}
+
+/// The lock on a model directory, held while training writes it. A folder
+/// the run created is removed again when the run ends without writing
+/// anything into it (an error or a divergence before the first
+/// checkpoint): it held only the lock file, which looked like a model
+/// folder to the user and to the next `train` without `--overwrite`.
+pub struct ModelDirLock {
+    _file: fs::File,
+    dir: PathBuf,
+    created: bool,
+}
+
+impl Drop for ModelDirLock {
+    fn drop(&mut self) {
+        if !self.created {
+            return;
+        }
+        let only_lock = fs::read_dir(&self.dir).is_ok_and(|entries| {
+            entries
+                .filter_map(|e| e.ok())
+                .all(|e| e.file_name() == files::LOCK)
+        });
+        if only_lock {
+            let _ = fs::remove_file(self.dir.join(files::LOCK));
+            let _ = fs::remove_dir(&self.dir);
         }
     }
 }

@@ -272,6 +272,15 @@ pub fn read_part(path: &Path) -> Result<(RenderPartHeader, Vec<PixelSum>), Rende
             "film checksum mismatch: the file is damaged",
         ));
     }
+    // Nothing after the end marker: an appended byte is damage too (an
+    // estimator file with one is refused the same way).
+    let mut extra = [0u8; 1];
+    if std::io::Read::read(&mut f, &mut extra).map_err(|e| file_err(path, e.to_string()))? != 0 {
+        return Err(file_err(
+            path,
+            "bytes after the end marker: the file is damaged",
+        ));
+    }
     let raw = miniz_oxide::inflate::decompress_to_vec_with_limit(&stored, raw_len as usize)
         .map_err(|e| {
             file_err(
@@ -521,6 +530,23 @@ mod tests {
             let err = read_part(&path).unwrap_err().to_string();
             assert!(err.contains(needle) && err.contains("damaged"), "{err}");
         }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A byte appended to a valid part merged without complaint (an
+    /// estimator file with one is refused): both are damage.
+    #[test]
+    fn bytes_after_the_end_marker_are_refused() {
+        let dir = std::env::temp_dir().join(format!("nppp-part-tail-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("p.nppr");
+        write_part(&path, &header(), &film_of([1.5, 0.0])).unwrap();
+        assert!(read_part(&path).is_ok());
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes.push(0);
+        std::fs::write(&path, &bytes).unwrap();
+        let err = read_part(&path).unwrap_err().to_string();
+        assert!(err.contains("after the end marker"), "{err}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
