@@ -21,7 +21,7 @@ pub struct BenchArgs {
     /// Where scene names are looked up.
     #[arg(long, default_value = "data/scenes")]
     pub scenes_dir: PathBuf,
-    /// Output folder: results.md, results.csv, <scene>.svg/.png, and per
+    /// Output folder: results.md, results.csv, `<scene>.svg/.png`, and per
     /// scene the cached reference and previews.
     #[arg(long, default_value = "out/bench")]
     pub out: PathBuf,

@@ -4,7 +4,7 @@
 //! [`ExitDecoder`] and is attached with
 //! [`EstimatorSampler::set_decoder`](crate::EstimatorSampler::set_decoder).
 //! Everything else (latent lookup, noise, the inverse output transform, the
-//! fallback when a backend fails) is [`EstimatorSampler::sample_batch`]'s
+//! fallback when a backend fails) is [`crate::EstimatorSampler::sample_batch`]'s
 //! and the same for every backend.
 
 use crate::dense_kernel::{KernelIsa, PackedLayer};

@@ -328,7 +328,7 @@ const NETWORK_VERTEX_OFFSET: f32 = 0.04;
 
 /// The picked vertex a network's vertex head returned (unit sphere frame)
 /// as the renderer uses it: mesh space, moved off the surface by
-/// [`NETWORK_VERTEX_OFFSET`], no light sample when it carries no throughput
+/// `NETWORK_VERTEX_OFFSET`, no light sample when it carries no throughput
 /// or lies past the `budget` of bounces left, and the light at the skipped
 /// vertices counted by the light sample alone.
 pub fn network_skipped(

@@ -121,7 +121,7 @@ pub struct PixelSum {
 }
 
 /// The image of a row-major film `width` pixels wide: every pixel's mean,
-/// as [`crate::render`] computes it.
+/// as [`crate::render()`] computes it.
 pub fn film_image(width: u32, height: u32, film: &[PixelSum]) -> crate::Image {
     use rayon::prelude::*;
     let mut img = crate::Image::new(width, height);

@@ -350,7 +350,7 @@ pub struct MergedRender {
 }
 
 impl MergedRender {
-    /// The image: every pixel's mean, as [`crate::render`] computes it.
+    /// The image: every pixel's mean, as [`crate::render()`] computes it.
     pub fn image(&self) -> crate::Image {
         crate::film::film_image(self.header.width, self.header.height, &self.film)
     }

@@ -32,7 +32,7 @@
 //! beats PT's efficiency by [`PilotOptions::margin`] (the cost model
 //! predicts time ratios to PT's within 6% RMS, 12% at most), and among its
 //! configurations within [`PilotOptions::tie`] of the best the cheapest
-//! wins ([`choose`]).
+//! wins (`choose`).
 //! Candidates are decided one estimator at a time, not by trying every
 //! combination. The pilot is 2-4% of a 64-spp render where PT is the
 //! cost, 6-8% on cornell-jade, where the estimator is 4x cheaper than PT.
@@ -206,7 +206,7 @@ pub struct PilotOptions {
     /// (BENCHMARKS.md, "auto").
     pub variance_ratio_prior: f64,
     /// Efficiencies within this factor of each other are a tie, which the
-    /// cheaper configuration wins (see [`choose`]).
+    /// cheaper configuration wins (see `choose`).
     pub tie: f64,
     /// A candidate gets its pilot halves only if its cost ratio to PT
     /// (counted on its first sample per pixel) times
@@ -291,7 +291,7 @@ pub struct Trial {
     pub rel_var_se: f64,
     /// Relative variance per pixel (`rel_var` is their mean): with PT's,
     /// the standard error of the ratio of the two
-    /// ([`Trial::log_variance_ratio_var`]). Empty where not measured.
+    /// (`Trial::log_variance_ratio_var`). Empty where not measured.
     pub pixel_rel_var: Vec<f64>,
     /// Work per sample, node-visit equivalents.
     pub cost: f64,
@@ -932,7 +932,7 @@ fn mean_and_standard_error(values: &[f64]) -> (f64, f64) {
 /// measured ratio by 10x-100x between seeds (BENCHMARKS.md, "auto").
 /// Treating the log variance ratio `r` as normally distributed around the
 /// truth with the delta-method variance `s2` of
-/// [`Trial::log_variance_ratio_var`] (from the spread over pixels, so a
+/// `Trial::log_variance_ratio_var` (from the spread over pixels, so a
 /// single firefly makes it as large as the ratio), and the truth as drawn from a
 /// prior `N(0, tau^2)`, the posterior mean is `r tau^2 / (tau^2 + s2)`: a
 /// ratio measured from many similar pixels is kept, one made by a few
