@@ -228,56 +228,54 @@ pub fn run(a: &GenArgs) -> Result<()> {
     let report = report?;
     let (st, sum) = (&report.stats, &report.summary);
     let t = st.mean_throughput();
-    nppp_files::say!("{}", sum.path.display());
-    nppp_files::say!(
+    crate::print_summary(&sum.path.display())?;
+    crate::print_summary(&format_args!(
         "  rays        {} ({:.1}% hit the mesh)",
         st.rays,
         100.0 * st.hit_fraction()
-    );
-    nppp_files::say!(
+    ))?;
+    crate::print_summary(&format_args!(
         "  exits       {} ({} zero-throughput, {} of them at the bounce cap), mean bounces {:.3}",
         st.exits,
         st.zero_exits,
         st.capped_exits,
         st.mean_bounces()
-    );
-    nppp_files::say!(
+    ))?;
+    crate::print_summary(&format_args!(
         "  mean exit throughput [{:.4} {:.4} {:.4}]",
-        t[0],
-        t[1],
-        t[2]
-    );
-    nppp_files::say!(
+        t[0], t[1], t[2]
+    ))?;
+    crate::print_summary(&format_args!(
         "  vertices    {}",
         if obj.header(&cfg).vertices {
             "each exit carries its walk's picked vertex (next-event estimation through the estimator: `nppp train` adds a vertex head)"
         } else {
             "none (a smooth dielectric or a medium takes no light sample inside)"
         }
-    );
+    ))?;
     let rate = nppp_files::format_rate;
-    nppp_files::say!(
+    crate::print_summary(&format_args!(
         "  time        {:.2}s: {}, {}, {} in the walks ({threads} threads)",
         st.seconds,
         rate(st.exits_per_second(), "exits"),
         rate(st.rays_per_second(), "rays"),
         rate(st.bvh_queries_per_second(), "BVH queries")
-    );
+    ))?;
     // A run shorter than the clock's tick has no CPU rate to speak of.
     if let Some(cpu) = gen_cpu.filter(|c| *c > 0.0) {
-        nppp_files::say!(
+        crate::print_summary(&format_args!(
             "  CPU time    {cpu:.2}s: {} per CPU-second ({:.2} of {threads} threads busy on average)",
             rate(st.exits as f64 / cpu, "exits").trim_end_matches("/s"),
             cpu / st.seconds.max(1e-9)
-        );
+        ))?;
     }
-    nppp_files::say!(
+    crate::print_summary(&format_args!(
         "  file        {} in {} chunks, {:.2} bytes/exit ({:.2} before compression)",
         nppp_files::format_bytes(sum.file_bytes),
         sum.chunks,
         sum.bytes_per_exit(),
         sum.raw_bytes as f64 / st.exits.max(1) as f64
-    );
+    ))?;
     if st.exits > 0 && st.zero_exits == st.exits {
         nppp_files::note!(
             "warning: every one of the {} exits has zero throughput: the material absorbs all \
@@ -301,23 +299,23 @@ pub fn run(a: &GenArgs) -> Result<()> {
     }
     if st.exits > 0 {
         let exits = THESIS_RAYS as f64 * st.hit_fraction() * THESIS_K as f64;
-        nppp_files::say!(
+        crate::print_summary(&format_args!(
             "  projection  {THESIS_RAYS} rays x k = {THESIS_K}: {:.1} M exits, {} and {:.1} min at this rate",
             exits / 1e6,
             nppp_files::format_bytes((exits * sum.bytes_per_exit()) as u64),
             exits / st.exits_per_second() / 60.0
-        );
+        ))?;
     }
     if a.measure_bvh {
         let cpu0 = process_cpu_seconds();
         let m = measure_bvh(&obj, a.seed ^ 0x5eed_b7a5, 1 << 18, 2.0);
         let bvh_cpu = cpu_since(cpu0);
         let queries = (st.exits + st.bounce_sum + st.rays) as f64;
-        nppp_files::say!(
+        crate::print_summary(&format_args!(
             "  bare BVH    {:.2} M closest-hit rays/s on random chords ({:.1}% hit, {threads} threads)",
             m.rays_per_second() / 1e6,
             100.0 * m.hits as f64 / m.rays.max(1) as f64
-        );
+        ))?;
         // Per CPU-second when the OS tells us, so that other load on the
         // machine during one of the two phases does not skew the ratio.
         let (walk_rate, bvh_rate, basis) = match (gen_cpu, bvh_cpu) {
@@ -330,13 +328,13 @@ pub fn run(a: &GenArgs) -> Result<()> {
                 "per second",
             ),
         };
-        nppp_files::say!(
+        crate::print_summary(&format_args!(
             "  ratio       walks: {:.2} M queries {basis} = {:.0}% of the bare BVH's {:.2} M ({:.2} queries per exit: entry hit + bounces)",
             walk_rate / 1e6,
             100.0 * walk_rate / bvh_rate,
             bvh_rate / 1e6,
             queries / st.exits.max(1) as f64
-        );
+        ))?;
     }
     Ok(())
 }

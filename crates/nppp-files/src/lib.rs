@@ -23,8 +23,8 @@
 //! - [`available_memory`]: what a command may plan to allocate, so that a
 //!   flag or a file that claims gigabytes is refused with a message instead
 //!   of aborting on allocation.
-//! - [`note!`] and [`say!`]: `eprintln!` and `println!` that never panic
-//!   (a closed pipe made them end a render with exit code 101).
+//! - [`note!`]: `eprintln!` that never panics (a closed pipe made it end
+//!   a render with exit code 101).
 //! - [`format_bytes`], [`format_rate`] and [`progress_style`]: the one way
 //!   every command prints sizes and rates (summaries and progress bars say
 //!   `0.229 M samples/s` alike).
@@ -38,16 +38,6 @@ macro_rules! note {
     ($($arg:tt)*) => {{
         use ::std::io::Write as _;
         let _ = ::std::writeln!(::std::io::stderr(), $($arg)*);
-    }};
-}
-
-/// `println!` that never panics (see [`note!`]): a command's summary on
-/// stdout, read by a pipe that may close early.
-#[macro_export]
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use ::std::io::Write as _;
-        let _ = ::std::writeln!(::std::io::stdout(), $($arg)*);
     }};
 }
 

@@ -95,16 +95,13 @@ pub fn write_exr(img: &Image, path: &Path) -> Result<(), ImageError> {
 }
 
 pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
-    let err = |e: exr::error::Error| ImageError::Read {
+    let err = |e: &dyn std::fmt::Display| ImageError::Read {
         path: path.into(),
         msg: e.to_string(),
     };
     // The decoder opens the file itself: a pipe would block it, a device
     // feed it forever.
-    nppp_files::check_regular(path).map_err(|e| ImageError::Read {
-        path: path.into(),
-        msg: e.to_string(),
-    })?;
+    nppp_files::check_regular(path).map_err(|e| err(&e))?;
     let img = exr::prelude::read_first_rgba_layer_from_file(
         path,
         |res: exr::math::Vec2<usize>, _| Image::new(res.width() as u32, res.height() as u32),
@@ -113,7 +110,7 @@ pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
             img.pixels[i] = [r, g, b];
         },
     )
-    .map_err(err)?;
+    .map_err(|e| err(&e))?;
     Ok(img.layer_data.channel_data.pixels)
 }
 
