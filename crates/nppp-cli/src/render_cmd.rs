@@ -241,7 +241,7 @@ fn decoder_batches(st: &nppp_render::estimator::EstimatorStats, ests: &Estimator
 fn estimator_names(scene: &nppp_scene::Scene, ests: &Estimators) -> Vec<String> {
     (0..ests.list.len())
         .map(|i| {
-            ests.per_instance
+            ests.per_instance()
                 .iter()
                 .position(|e| *e == Some(i as u32))
                 .map(|ii| {

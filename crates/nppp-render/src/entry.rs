@@ -55,7 +55,9 @@ impl EntryBatch {
                 self.entries
                     .iter()
                     .enumerate()
-                    .filter(|(_, (_, e))| ests.per_instance[e.instance as usize] == Some(ei as u32))
+                    .filter(|(_, (_, e))| {
+                        ests.per_instance()[e.instance as usize] == Some(ei as u32)
+                    })
                     .map(|(i, _)| i),
             );
             if self.rows.is_empty() {

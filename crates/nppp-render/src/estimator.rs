@@ -125,8 +125,9 @@ impl Estimator {
 /// All estimators of a scene and which instance uses which.
 pub struct Estimators {
     pub list: Vec<Estimator>,
-    /// Per instance: index into `list`.
-    pub per_instance: Vec<Option<u32>>,
+    /// Per instance: index into `list`. Set through
+    /// [`Estimators::set_per_instance`], which keeps `sole_instance` in step.
+    per_instance: Vec<Option<u32>>,
     /// The smallest P of the estimators in use (each has its own): paths
     /// with fewer bounces need no estimator query at all. Kept by
     /// [`Estimators::configure`] and [`Estimators::configure_one`].
@@ -833,6 +834,19 @@ impl Estimators {
         };
         estimators.find_sole_instance();
         Ok(Some(estimators))
+    }
+
+    /// Per instance: index into `list`, `None` where the instance is traced
+    /// as plain geometry.
+    pub fn per_instance(&self) -> &[Option<u32>] {
+        &self.per_instance
+    }
+
+    /// Which estimator each instance uses (`None`: traced as plain
+    /// geometry).
+    pub fn set_per_instance(&mut self, per_instance: Vec<Option<u32>>) {
+        self.per_instance = per_instance;
+        self.find_sole_instance();
     }
 
     fn find_sole_instance(&mut self) {

@@ -234,7 +234,8 @@ impl Wavefront {
         self.next.clear();
         self.next.resize(self.paths.len(), Next::Terminate);
         for (k, (i, entry)) in self.batch.entries.iter().enumerate() {
-            let est = &ests.list[ests.per_instance[entry.instance as usize].unwrap_or(0) as usize];
+            let est =
+                &ests.list[ests.per_instance()[entry.instance as usize].unwrap_or(0) as usize];
             let exit = self.batch.exits[k];
             let path = &mut self.paths[*i];
             if est.entry_nee != EntryNee::Off {

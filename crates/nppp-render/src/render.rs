@@ -118,7 +118,7 @@ fn render_into<T: Send>(
 ) -> RenderStats {
     if let Some(e) = &scene.estimators {
         let merged = e
-            .per_instance
+            .per_instance()
             .iter()
             .enumerate()
             .find(|(i, est)| est.is_some() && scene.accel.is_merged(*i));

@@ -243,8 +243,8 @@ fn a_ray_that_cannot_enter_the_sole_estimator_sphere_meets_what_the_estimator_la
     let mut rs = RenderScene::for_estimators(&scene);
     rs.estimators = Estimators::load(&scene, EstimatorMode::Oracle, 1).unwrap();
     let est = rs.estimators.as_ref().unwrap();
-    let inst = est.per_instance.iter().position(Option::is_some).unwrap();
-    let sphere = est.list[est.per_instance[inst].unwrap() as usize].sphere;
+    let inst = est.per_instance().iter().position(Option::is_some).unwrap();
+    let sphere = est.list[est.per_instance()[inst].unwrap() as usize].sphere;
     let x = rs.accel.instances[inst];
     let mut rng = nppp_geom::rng::SampleRng::new(7, 0, 0);
     let mut stats = EstimatorStats::default();

@@ -92,7 +92,7 @@ pub fn plan(
     render: &RenderOptions,
 ) -> Plan {
     let t = Instant::now();
-    let base = ests.per_instance.clone();
+    let base = ests.per_instance().to_vec();
     let (ests, decision) = pilot(rs, ests, opts);
     let mut plan = Plan {
         decision,

@@ -565,7 +565,7 @@ pub fn decide(
     ests: Estimators,
     opts: &PilotOptions,
 ) -> (Option<Estimators>, Decision) {
-    let base = ests.per_instance.clone();
+    let base = ests.per_instance().to_vec();
     let (mut ests, decision) = pilot(rs, ests, opts);
     configure_decided(&mut ests, &base, &decision);
     (ests.any_in_use().then_some(ests), decision)
@@ -610,7 +610,7 @@ fn pilot(
     let seeds = [1u64, 2].map(|k| mix64(mix64(opts.seed) ^ (0xA070_0000_0000_0000 | k)));
     let whole = 0..opts.spp;
 
-    let base_instances = ests.per_instance.clone();
+    let base_instances = ests.per_instance().to_vec();
     let configure = |ests: &mut Estimators, index: usize, choice: Choice| {
         configure_alone(ests, &base_instances, index, choice)
     };
@@ -729,7 +729,7 @@ fn pilot(
         });
     }
     rs.camera = camera;
-    ests.per_instance = base_instances;
+    ests.set_per_instance(base_instances);
     let decision = Decision {
         pt,
         estimators: decisions,
@@ -745,17 +745,18 @@ fn pilot(
 /// geometry), in configuration `choice`. `base`: every instance's
 /// estimator as loaded.
 fn configure_alone(ests: &mut Estimators, base: &[Option<u32>], index: usize, choice: Choice) {
-    ests.per_instance = base
-        .iter()
-        .map(|e| e.filter(|&i| i as usize == index))
-        .collect();
+    ests.set_per_instance(
+        base.iter()
+            .map(|e| e.filter(|&i| i as usize == index))
+            .collect(),
+    );
     ests.configure_one(index, Some((choice.min_bounces, choice.entry_nee)));
 }
 
 /// Every estimator as `decision` chose (off ones' instances traced as
 /// plain geometry).
 fn configure_decided(ests: &mut Estimators, base: &[Option<u32>], decision: &Decision) {
-    ests.per_instance = base.to_vec();
+    ests.set_per_instance(base.to_vec());
     for d in &decision.estimators {
         ests.configure_one(d.index, d.choice.map(|c| (c.min_bounces, c.entry_nee)));
     }
