@@ -181,8 +181,11 @@ impl Wavefront {
         self.meets.extend(self.paths.iter().map(|p| {
             match &scene.estimators {
                 // A path at depth M only looks for emission: the real mesh serves (and P >= M never estimates).
+                // A path inside a medium traces every object for real: an
+                // estimator learned its object in vacuum.
                 Some(est)
-                    if p.depth >= est.min_bounces
+                    if p.medium.is_none()
+                        && p.depth >= est.min_bounces
                         && p.depth < m
                         && !est.cannot_enter(&scene.accel, p.origin, p.dir) =>
                 {
@@ -421,20 +424,22 @@ fn shade(
     path.origin = offset_ray_origin(p, ng, wi, eps);
     path.dir = wi;
     path.skip_instance = crate::accel::NO_SKIP;
-    if bs.transmitted {
-        // Into the object's medium (if it has one) from its front side, out
-        // of it from its back side.
-        path.medium = match scene.media[hit.instance as usize] {
-            Some(_) if wo_world.dot(ng) > 0.0 => {
-                // One hero channel for all the path's medium visits, drawn
-                // at every entry and used from the first (`crate::medium`).
-                let picked = HeroChannel::pick(path.rng.uniform());
-                path.hero.get_or_insert(picked);
-                Some(MediumVisit {
-                    instance: hit.instance,
-                })
-            }
-            _ => None,
+    // Through a translucent object's boundary: into its medium from the
+    // front side, out of it (into vacuum) from the back side. A surface
+    // without a medium (plain glass) leaves the path's medium as it is, as
+    // Mitsuba 3's `volpath` does for a shape that names no media: glass
+    // inside a translucent object is surrounded by that object's medium.
+    if bs.transmitted && scene.media[hit.instance as usize].is_some() {
+        path.medium = if wo_world.dot(ng) > 0.0 {
+            // One hero channel for all the path's medium visits, drawn at
+            // every entry and used from the first (`crate::medium`).
+            let picked = HeroChannel::pick(path.rng.uniform());
+            path.hero.get_or_insert(picked);
+            Some(MediumVisit {
+                instance: hit.instance,
+            })
+        } else {
+            None
         };
     }
     russian_roulette(path, u_rr)

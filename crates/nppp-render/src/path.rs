@@ -30,8 +30,9 @@ pub struct PathState {
     /// next intersection), or `NO_SKIP`.
     pub skip_instance: u32,
     /// The medium the path is travelling through: set when the path
-    /// refracts into a translucent object, cleared when it refracts out
-    /// (media do not nest).
+    /// refracts into a translucent object, cleared when it refracts out of
+    /// one (media do not nest: out of an inner translucent object is
+    /// vacuum, as in Mitsuba 3); surfaces without a medium keep it.
     pub medium: Option<MediumVisit>,
     /// The path's spectral MIS over all its medium visits: picked at its
     /// first entry into a medium, kept to its end (see `crate::medium`).

@@ -167,3 +167,43 @@ fn one_hero_per_path_bounds_a_sample_through_several_media() {
         );
     }
 }
+
+#[test]
+fn glass_inside_a_medium_keeps_the_medium_as_mitsuba_does() {
+    // An index-matched glass box inside an absorbing slab (both ior 1: no
+    // reflection, no bending). A surface that names no medium keeps the
+    // path's (Mitsuba 3's `volpath`), so the lamp is seen through the
+    // whole slab: exp(-sigma_a * 1). Ending the medium at the glass, as
+    // nppp did, gave exp(-sigma_a * 0.25), the slab in front of the glass.
+    let sigma_a = [0.5f32, 1.0, 2.0];
+    let json = format!(
+        r#"{{
+  "camera": {{"position": [0, 0, -200], "look_at": [0, 0, 0], "fov_y_deg": 0.3, "width": 16, "height": 16}},
+  "materials": {{
+    "lamp": {{"type": "emitter", "radiance": [1, 1, 1]}},
+    "slab": {},
+    "glass": {{"type": "dielectric", "ior": 1.0}}
+  }},
+  "meshes": {{
+    "slab": {{"box": {{"min": [-1, -1, -0.5], "max": [1, 1, 0.5]}}}},
+    "inner": {{"box": {{"min": [-0.8, -0.8, -0.25], "max": [0.8, 0.8, 0.25]}}}},
+    "light": {{"quad": [[-50, -50, 20], [-50, 50, 20], [50, 50, 20], [50, -50, 20]]}}
+  }},
+  "instances": [
+    {{"mesh": "slab", "material": "slab"}},
+    {{"mesh": "inner", "material": "glass"}},
+    {{"mesh": "light", "material": "lamp"}}
+  ]
+}}"#,
+        translucent(1.0, [0.0; 3], sigma_a, 0.0)
+    );
+    let m = mean(&render_str(&json, 1024, 10, 6));
+    for c in 0..3 {
+        let expect = (-sigma_a[c] as f64).exp();
+        assert!(
+            (m[c] - expect).abs() < 0.02 * expect,
+            "channel {c}: {}, Beer-Lambert through the whole slab gives {expect}",
+            m[c]
+        );
+    }
+}
