@@ -94,6 +94,21 @@ impl Lights {
         self.pdf_area[i] * dist * dist / cos_light
     }
 
+    /// The triangle a light sample with selection number `u_select` takes
+    /// (the lights must not be empty).
+    #[inline]
+    pub fn pick(&self, u_select: f32) -> usize {
+        let target = u_select as f64 * self.total;
+        crate::prefix::partition_point(&self.cdf, |&c| c <= target).min(self.triangles.len() - 1)
+    }
+
+    /// [`Self::pdf_solid_angle`]'s constant part for triangle `i`: its
+    /// selection probability over its area.
+    #[inline]
+    pub fn pdf_area(&self, i: usize) -> f32 {
+        self.pdf_area[i]
+    }
+
     /// Samples a point on a light as seen from `p`; `None` if the point is on
     /// the light's back side or degenerate.
     #[inline]
@@ -101,9 +116,7 @@ impl Lights {
         if self.is_empty() {
             return None;
         }
-        let target = u_select as f64 * self.total;
-        let i = crate::prefix::partition_point(&self.cdf, |&c| c <= target)
-            .min(self.triangles.len() - 1);
+        let i = self.pick(u_select);
         let t = &self.triangles[i];
         let (b1, b2) = uniform_triangle(u);
         let point = t.v0 + t.e1 * b1 + t.e2 * b2;
