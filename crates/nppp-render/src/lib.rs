@@ -1,5 +1,5 @@
 //! The path tracer: two-level BVH, materials, lights, camera, the wavefront
-//! integrator, estimator integration (queries, batched answers, next-event
+//! integrator (diffuse bounces shaded eight paths at a time in SIMD lanes), estimator integration (queries, batched answers, next-event
 //! estimation through an estimator, the `auto` pilot), homogeneous media
 //! inside translucent objects, object walks
 //! (training data and the oracle), the exact film and render parts (a render
