@@ -379,10 +379,29 @@ mod tests {
     }"#;
 
     /// Every field of every path, every outcome and the shadow-ray count are
-    /// bit for bit what scalar `shade` gives, for full and partial groups.
+    /// bit for bit what scalar `shade` gives, for full and partial groups,
+    /// with the scene at three scales (ray offsets and light distances
+    /// scale with it).
     #[test]
     fn lanes_match_scalar_shading() {
-        let scene = nppp_scene::parse_scene(SCENE, std::path::Path::new("inline.json")).unwrap();
+        for scale in [1.0f32, 1e-3, 3e4] {
+            lanes_match_at(scale);
+        }
+    }
+
+    fn lanes_match_at(scale: f32) {
+        let json = SCENE.replace(
+            r#""material": "white"}"#,
+            &format!(r#""material": "white", "transform": {{"scale": {scale}}}}}"#),
+        );
+        let json = ["red", "dark", "lamp", "lamp2"].iter().fold(json, |j, m| {
+            j.replace(
+                &format!(r#""material": "{m}"}}"#),
+                &format!(r#""material": "{m}", "transform": {{"scale": {scale}}}}}"#),
+            )
+        });
+        assert_eq!(json.matches("transform").count(), 5, "every instance scaled");
+        let scene = nppp_scene::parse_scene(&json, std::path::Path::new("inline.json")).unwrap();
         let rs = RenderScene::new(&scene);
         let settings = IntegratorSettings {
             max_bounces: 6,
@@ -392,7 +411,7 @@ mod tests {
         let mut paths = Vec::new();
         let mut hits = Vec::new();
         while paths.len() < 2000 {
-            let o = Vec3::new(draw.uniform(), draw.uniform(), draw.uniform()) * 1.6 - 0.8;
+            let o = (Vec3::new(draw.uniform(), draw.uniform(), draw.uniform()) * 1.6 - 0.8) * scale;
             let d = nppp_geom::sampling::uniform_sphere(draw.uniform2());
             let Some(hit) = rs.plain().intersect(o, d, f32::INFINITY) else {
                 continue;
@@ -446,8 +465,12 @@ mod tests {
         );
         let mut continued = 0;
         for (i, (a, b)) in scalar.iter_mut().zip(&mut paths).enumerate() {
-            assert_eq!(scalar_next[i], lanes_next[i], "path {i}");
-            assert_eq!(format!("{a:?}"), format!("{b:?}"), "path {i}");
+            assert_eq!(scalar_next[i], lanes_next[i], "scale {scale}, path {i}");
+            assert_eq!(
+                format!("{a:?}"),
+                format!("{b:?}"),
+                "scale {scale}, path {i}"
+            );
             assert_eq!(
                 a.rng.uniform().to_bits(),
                 b.rng.uniform().to_bits(),
