@@ -173,25 +173,10 @@ impl Wavefront {
                 };
                 self.outcome.push(next);
                 if self.lanes.len() == diffuse_lanes::LANES {
-                    shade_diffuse_lanes(
-                        scene,
-                        &mut self.paths,
-                        &self.lanes,
-                        &mut self.outcome,
-                        &mut self.work,
-                    );
-                    self.lanes.clear();
+                    self.shade_lanes(scene);
                 }
             }
-            if !self.lanes.is_empty() {
-                shade_diffuse_lanes(
-                    scene,
-                    &mut self.paths,
-                    &self.lanes,
-                    &mut self.outcome,
-                    &mut self.work,
-                );
-            }
+            self.shade_lanes(scene);
             let mut w = 0;
             for r in 0..self.paths.len() {
                 match self.outcome[r] {
@@ -213,6 +198,20 @@ impl Wavefront {
         }
         self.work.node_visits += crate::bvh::node_visits() - visits_before;
         self.work.leaf_visits += crate::bvh::leaf_visits() - leaves_before - camera_leaves;
+    }
+
+    /// Shades the paths waiting in `self.lanes` together and empties it.
+    fn shade_lanes(&mut self, scene: &RenderScene) {
+        if !self.lanes.is_empty() {
+            shade_diffuse_lanes(
+                scene,
+                &mut self.paths,
+                &self.lanes,
+                &mut self.outcome,
+                &mut self.work,
+            );
+            self.lanes.clear();
+        }
     }
 
     fn intersect(&mut self, scene: &RenderScene, settings: &IntegratorSettings) {

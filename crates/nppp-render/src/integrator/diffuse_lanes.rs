@@ -400,7 +400,11 @@ mod tests {
                 &format!(r#""material": "{m}", "transform": {{"scale": {scale}}}}}"#),
             )
         });
-        assert_eq!(json.matches("transform").count(), 5, "every instance scaled");
+        assert_eq!(
+            json.matches("transform").count(),
+            5,
+            "every instance scaled"
+        );
         let scene = nppp_scene::parse_scene(&json, std::path::Path::new("inline.json")).unwrap();
         let rs = RenderScene::new(&scene);
         let settings = IntegratorSettings {
