@@ -351,14 +351,16 @@ mod tests {
     use super::*;
     use nppp_geom::SampleRng;
 
-    /// A box of diffuse walls with a diffuse ball, a tilted diffuse quad
-    /// and two lamps of different power (so light picks differ per lane).
+    /// A box of diffuse walls with a diffuse ball, a tilted diffuse quad, a
+    /// black pillar (no light sample reaches a shadow ray) and two lamps of
+    /// different power (so light picks differ per lane).
     const SCENE: &str = r#"{
       "camera": {"position": [0, 0, -3], "look_at": [0, 0, 0], "fov_y_deg": 40, "width": 8, "height": 8},
       "materials": {
         "white": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]},
         "red": {"type": "diffuse", "albedo": [0.6, 0.1, 0.05]},
         "dark": {"type": "diffuse", "albedo": [0.02, 0.3, 0.01]},
+        "black": {"type": "diffuse", "albedo": [0, 0, 0]},
         "lamp": {"type": "emitter", "radiance": [5, 4, 3]},
         "lamp2": {"type": "emitter", "radiance": [0.5, 1, 2]}
       },
@@ -366,6 +368,7 @@ mod tests {
         "room": {"box": {"min": [-1, -1, -1], "max": [1, 1, 1]}},
         "ball": {"icosphere": {"center": [0.3, -0.5, 0.2], "radius": 0.4, "subdivisions": 2}},
         "tilted": {"quad": [[-0.8, -0.2, -0.5], [-0.2, 0.3, 0.1], [-0.3, 0.6, 0.4], [-0.9, 0.1, -0.2]]},
+        "pillar": {"box": {"min": [0.5, -1, -0.9], "max": [0.7, 0.2, -0.6]}},
         "light": {"quad": [[-0.3, 0.99, -0.3], [0.3, 0.99, -0.3], [0.3, 0.99, 0.3], [-0.3, 0.99, 0.3]]},
         "light2": {"quad": [[0.99, -0.2, -0.2], [0.99, 0.2, -0.2], [0.99, 0.2, 0.2], [0.99, -0.2, 0.2]]}
       },
@@ -373,6 +376,7 @@ mod tests {
         {"mesh": "room", "material": "white"},
         {"mesh": "ball", "material": "red"},
         {"mesh": "tilted", "material": "dark"},
+        {"mesh": "pillar", "material": "black"},
         {"mesh": "light", "material": "lamp"},
         {"mesh": "light2", "material": "lamp2"}
       ]
@@ -394,15 +398,17 @@ mod tests {
             r#""material": "white"}"#,
             &format!(r#""material": "white", "transform": {{"scale": {scale}}}}}"#),
         );
-        let json = ["red", "dark", "lamp", "lamp2"].iter().fold(json, |j, m| {
-            j.replace(
-                &format!(r#""material": "{m}"}}"#),
-                &format!(r#""material": "{m}", "transform": {{"scale": {scale}}}}}"#),
-            )
-        });
+        let json = ["red", "dark", "black", "lamp", "lamp2"]
+            .iter()
+            .fold(json, |j, m| {
+                j.replace(
+                    &format!(r#""material": "{m}"}}"#),
+                    &format!(r#""material": "{m}", "transform": {{"scale": {scale}}}}}"#),
+                )
+            });
         assert_eq!(
             json.matches("transform").count(),
-            5,
+            6,
             "every instance scaled"
         );
         let scene = nppp_scene::parse_scene(&json, std::path::Path::new("inline.json")).unwrap();
