@@ -352,8 +352,9 @@ mod tests {
     use nppp_geom::SampleRng;
 
     /// A box of diffuse walls with a diffuse ball, a tilted diffuse quad, a
-    /// black pillar (no light sample reaches a shadow ray) and two lamps of
-    /// different power (so light picks differ per lane).
+    /// black pillar (no light sample reaches a shadow ray), a smooth gem
+    /// whose shading normals lean away from its faces ([`GEM_OBJ`]) and two
+    /// lamps of different power (so light picks differ per lane).
     const SCENE: &str = r#"{
       "camera": {"position": [0, 0, -3], "look_at": [0, 0, 0], "fov_y_deg": 40, "width": 8, "height": 8},
       "materials": {
@@ -369,6 +370,7 @@ mod tests {
         "ball": {"icosphere": {"center": [0.3, -0.5, 0.2], "radius": 0.4, "subdivisions": 2}},
         "tilted": {"quad": [[-0.8, -0.2, -0.5], [-0.2, 0.3, 0.1], [-0.3, 0.6, 0.4], [-0.9, 0.1, -0.2]]},
         "pillar": {"box": {"min": [0.5, -1, -0.9], "max": [0.7, 0.2, -0.6]}},
+        "gem": {"obj": "gem.obj", "smooth": true},
         "light": {"quad": [[-0.3, 0.99, -0.3], [0.3, 0.99, -0.3], [0.3, 0.99, 0.3], [-0.3, 0.99, 0.3]]},
         "light2": {"quad": [[0.99, -0.2, -0.2], [0.99, 0.2, -0.2], [0.99, 0.2, 0.2], [0.99, -0.2, 0.2]]}
       },
@@ -377,10 +379,19 @@ mod tests {
         {"mesh": "ball", "material": "red"},
         {"mesh": "tilted", "material": "dark"},
         {"mesh": "pillar", "material": "black"},
+        {"mesh": "gem", "material": "dark"},
         {"mesh": "light", "material": "lamp"},
         {"mesh": "light2", "material": "lamp2"}
       ]
     }"#;
+
+    /// An octahedron around (-0.4, 0.2, 0.3) with vertex normals tilted off
+    /// its corners' directions: shading frames differ from the faces'.
+    const GEM_OBJ: &str = "v -0.1 0.2 0.3\nv -0.7 0.2 0.3\nv -0.4 0.5 0.3\nv -0.4 -0.1 0.3\n\
+        v -0.4 0.2 0.6\nv -0.4 0.2 0\n\
+        vn 1 0.4 0\nvn -1 -0.3 0.2\nvn 0.3 1 0\nvn 0 -1 0.5\nvn -0.4 0 1\nvn 0.2 0.3 -1\n\
+        f 1//1 3//3 5//5\nf 3//3 2//2 5//5\nf 2//2 4//4 5//5\nf 4//4 1//1 5//5\n\
+        f 3//3 1//1 6//6\nf 2//2 3//3 6//6\nf 4//4 2//2 6//6\nf 1//1 4//4 6//6\n";
 
     /// Every field of every path, every outcome and the shadow-ray count are
     /// bit for bit what scalar `shade` gives, for full and partial groups,
@@ -408,10 +419,14 @@ mod tests {
             });
         assert_eq!(
             json.matches("transform").count(),
-            6,
+            7,
             "every instance scaled"
         );
-        let scene = nppp_scene::parse_scene(&json, std::path::Path::new("inline.json")).unwrap();
+        let dir = std::env::temp_dir().join(format!("nppp-lanes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("gem.obj"), GEM_OBJ).unwrap();
+        let scene = nppp_scene::parse_scene(&json, &dir.join("scene.json")).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
         let rs = RenderScene::new(&scene);
         let settings = IntegratorSettings {
             max_bounces: 6,
@@ -420,6 +435,7 @@ mod tests {
         let mut draw = SampleRng::new(7, 0, 0);
         let mut paths = Vec::new();
         let mut hits = Vec::new();
+        let mut smooth_hits = 0;
         while paths.len() < 2000 {
             let o = (Vec3::new(draw.uniform(), draw.uniform(), draw.uniform()) * 1.6 - 0.8) * scale;
             let d = nppp_geom::sampling::uniform_sphere(draw.uniform2());
@@ -436,10 +452,16 @@ mod tests {
             path.beta = Vec3::new(draw.uniform(), draw.uniform(), draw.uniform()) * 1.2;
             path.radiance = Vec3::splat(draw.uniform());
             if lane_albedo(&rs, &settings, &path, &hit).is_some() {
+                let (ng, ns) = rs.normals_at(&hit);
+                smooth_hits += usize::from((ns - ng).length() > 1e-3);
                 paths.push(path);
                 hits.push(hit);
             }
         }
+        assert!(
+            smooth_hits > 20,
+            "too few hits on the smooth gem: {smooth_hits}"
+        );
         let mut scalar = paths.clone();
         let mut scalar_work = WorkCounts::default();
         let scalar_next: Vec<Next> = scalar
