@@ -109,6 +109,10 @@ pub struct Wavefront {
     outcome: Vec<Next>,
     /// This step's paths waiting for SIMD diffuse shading: (path, hit, albedo).
     lanes: Vec<(u32, SceneHit, Vec3)>,
+    /// Tests only: shade every path with the scalar `shade`, to compare
+    /// whole renders with the lanes.
+    #[cfg(test)]
+    scalar_only: bool,
 }
 
 /// Outcome of advancing one path by one event.
@@ -164,6 +168,10 @@ impl Wavefront {
                     }
                     Meet::Nothing => Next::Terminate,
                     Meet::Surface(hit) => match lane_albedo(scene, settings, path, &hit) {
+                        #[cfg(test)]
+                        Some(_) if self.scalar_only => {
+                            shade(scene, settings, path, hit, &mut self.work)
+                        }
                         Some(albedo) => {
                             self.lanes.push((r as u32, hit, albedo));
                             Next::Continue

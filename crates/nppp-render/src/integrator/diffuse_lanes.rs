@@ -356,7 +356,7 @@ mod tests {
     /// whose shading normals lean away from its faces ([`GEM_OBJ`]) and two
     /// lamps of different power (so light picks differ per lane).
     const SCENE: &str = r#"{
-      "camera": {"position": [0, 0, -3], "look_at": [0, 0, 0], "fov_y_deg": 40, "width": 8, "height": 8},
+      "camera": {"position": [0, 0, -0.95], "look_at": [0, 0, 0], "fov_y_deg": 70, "width": 8, "height": 8},
       "materials": {
         "white": {"type": "diffuse", "albedo": [0.7, 0.7, 0.7]},
         "red": {"type": "diffuse", "albedo": [0.6, 0.1, 0.05]},
@@ -384,6 +384,47 @@ mod tests {
         {"mesh": "light2", "material": "lamp2"}
       ]
     }"#;
+
+    /// Whole wavefronts (every bounce to the end of every path, the films'
+    /// exact sums, the work counted) are the same with the lanes as with
+    /// scalar shading alone.
+    #[test]
+    fn a_wavefront_with_lanes_renders_what_scalar_shading_renders() {
+        let dir = std::env::temp_dir().join(format!("nppp-wavefront-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("gem.obj"), GEM_OBJ).unwrap();
+        let scene = nppp_scene::parse_scene(SCENE, &dir.join("scene.json")).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+        let rs = RenderScene::new(&scene);
+        let settings = IntegratorSettings {
+            max_bounces: 8,
+            seed: 1,
+        };
+        let (w, h) = (rs.camera.width, rs.camera.height);
+        let render = |scalar_only: bool| {
+            let mut wf = super::super::Wavefront {
+                scalar_only,
+                ..Default::default()
+            };
+            for y in 0..h {
+                for x in 0..w {
+                    for s in 0..37 {
+                        let pixel = u64::from(y * w + x);
+                        let mut rng = SampleRng::new(settings.seed, pixel, s);
+                        let dir = rs.camera.ray_dir(crate::camera::jitter(&mut rng, x, y));
+                        wf.paths
+                            .push(PathState::camera(y * w + x, rng, rs.camera.origin, dir));
+                    }
+                }
+            }
+            let mut film = vec![crate::film::PixelSum::default(); (w * h) as usize];
+            wf.run(&rs, &settings, &mut film);
+            (film, wf.work.shadow_rays, wf.work.rays)
+        };
+        let (lanes, scalar) = (render(false), render(true));
+        assert!(lanes.1 > 1000, "too few light samples: {}", lanes.1);
+        assert_eq!(lanes, scalar);
+    }
 
     /// An octahedron around (-0.4, 0.2, 0.3) with vertex normals tilted off
     /// its corners' directions: shading frames differ from the faces'.
