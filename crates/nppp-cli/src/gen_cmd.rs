@@ -122,6 +122,14 @@ pub fn run(a: &GenArgs) -> Result<()> {
         "--max-internal-bounces must be at least 1"
     );
     ensure!(
+        a.max_internal_bounces
+            .is_none_or(|m| m <= nppp_render::estimator::ORACLE_MAX_INTERNAL_BOUNCES),
+        "--max-internal-bounces must be at most {} (the oracle's cap; got {}): a walk \
+         still inside after that many scattering events is recorded as absorbed anyway",
+        nppp_render::estimator::ORACLE_MAX_INTERNAL_BOUNCES,
+        a.max_internal_bounces.unwrap_or(0)
+    );
+    ensure!(
         a.rays.saturating_mul(a.k as u64) <= MAX_PLANNED_EXITS,
         "--rays {} x --k {} plans {:.3e} exits, more than any disk holds (about 10 bytes each); \
          at most {MAX_PLANNED_EXITS:.3e} (the default recipe plans 6.4e7)",

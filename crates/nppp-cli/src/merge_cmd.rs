@@ -99,7 +99,23 @@ pub fn run(a: &MergeArgs) -> Result<()> {
             );
         }
     }
-    if crate::has_extension(&a.out, "exr") {
+    // Parts of the other kind than --out names: the fix is --out's name,
+    // not the parts (which `merge_render` / `merge_data` would blame).
+    let out_is_render = crate::has_extension(&a.out, "exr");
+    if let Some(kind) = part_kind(&a.parts[0])
+        && kind != out_is_render
+    {
+        let (parts, wanted) = if kind {
+            ("render parts (`nppp render --shard`)", "*.exr")
+        } else {
+            ("training-data parts (`nppp gen --shard`)", "*.nppd")
+        };
+        bail!(
+            "--out {}: the parts are {parts}; name the merged file {wanted}",
+            a.out.display()
+        );
+    }
+    if out_is_render {
         merge_render(a)
     } else {
         ensure!(
@@ -108,6 +124,25 @@ pub fn run(a: &MergeArgs) -> Result<()> {
         );
         crate::keep_existing_data(&a.out, a.overwrite, "merge")?;
         merge_data(a)
+    }
+}
+
+/// What a part's first bytes say it is: `Some(true)` a render part,
+/// `Some(false)` a training-data part, `None` neither (the merge's own
+/// reading then says what is wrong with it).
+fn part_kind(path: &Path) -> Option<bool> {
+    use std::io::Read;
+    let mut magic = [0u8; 8];
+    std::fs::File::open(path)
+        .ok()?
+        .read_exact(&mut magic)
+        .ok()?;
+    if magic == nppp_render::render_part::RENDER_PART_MAGIC {
+        Some(true)
+    } else if magic == nppp_estimator::dataset::DATASET_MAGIC {
+        Some(false)
+    } else {
+        None
     }
 }
 

@@ -458,10 +458,19 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                 .map_or_else(String::new, |v| v.get_name().to_string())
         );
     }
-    if instrument && a.decoder != DecoderChoice::Cpu {
-        nppp_files::note!(
-            "warning: --decoder does nothing here: the cost floor and free exits decode nothing"
-        );
+    if a.decoder != DecoderChoice::Cpu {
+        let why = match mode {
+            _ if !has_estimators => Some("no instance of the scene has an estimator"),
+            EstimatorMode::Off => Some("--estimators off renders plain path tracing"),
+            EstimatorMode::Oracle => Some("the oracle traces the real object and decodes nothing"),
+            EstimatorMode::CostFloor | EstimatorMode::FreeExits => {
+                Some("the cost floor and free exits decode nothing")
+            }
+            EstimatorMode::Neural => None,
+        };
+        if let Some(why) = why {
+            nppp_files::note!("warning: --decoder does nothing here: {why}");
+        }
     }
     let auto = a.estimators == EstimatorChoice::Auto;
     if a.auto_margin.is_some() && !auto {
@@ -490,6 +499,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     }
     let mut rs = RenderScene::with_estimators(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;
+    for o in &rs.obstructed {
+        nppp_files::note!("warning: {}: {}", a.scene.display(), o.describe(&scene));
+    }
     if let Some(e) = &mut rs.estimators {
         let nee = match a.entry_nee {
             EntryNeeChoice::Off => EntryNee::Off,
@@ -499,6 +511,12 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         };
         if picked {
             check_vertex_heads(e)?;
+        }
+        if nee != EntryNee::Off && !e.list.iter().any(|est| est.takes_light_samples()) {
+            nppp_files::note!(
+                "warning: --entry-nee does nothing here: no estimator's object takes light \
+                 samples (glass and translucent objects have smooth, delta boundaries)"
+            );
         }
         e.configure(settings.estimator_min_bounces, nee);
         e.latent_lookup = match a.latent_lookup {

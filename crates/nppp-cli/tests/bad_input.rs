@@ -1638,6 +1638,19 @@ fn special_files_are_refused_as_inputs() {
         &o,
         &["--out", "*.exr (render parts) or *.nppd"],
     );
+    // Data parts merged into an EXR: the fix is --out's name, which the
+    // error names (it blamed the part, "not an nppp render part").
+    let o = nppp([
+        "merge".as_ref(),
+        file("data_valid.nppd").as_os_str(),
+        "--out".as_ref(),
+        dir.join("m.exr").as_os_str(),
+    ]);
+    assert_clean_error(
+        "merge of data parts --out m.exr",
+        &o,
+        &["--out", "training-data parts", "*.nppd"],
+    );
     assert_eq!(names_in(&dir), ["est.json", "obj.json"]);
     let _ = std::fs::remove_dir_all(&dir);
 }

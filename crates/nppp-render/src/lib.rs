@@ -15,6 +15,7 @@ pub mod camera;
 pub mod datagen;
 pub mod entry;
 pub mod estimator;
+pub mod estimator_overlap;
 pub mod film;
 mod huge_pages;
 pub mod image_io;

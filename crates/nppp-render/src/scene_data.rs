@@ -50,6 +50,11 @@ pub struct RenderScene {
     /// all. Only a scene built by [`RenderScene::for_estimators`] can use
     /// them (`render::render` checks).
     pub estimators: Option<crate::estimator::Estimators>,
+    /// Instances whose estimator [`RenderScene::with_estimators`] left
+    /// unused because other geometry crosses, fills or holds their
+    /// see-through object (see [`crate::estimator_overlap`]): they are
+    /// traced for real, and the renderer says so.
+    pub obstructed: Vec<crate::estimator_overlap::Obstruction>,
 }
 
 impl RenderScene {
@@ -66,10 +71,35 @@ impl RenderScene {
         mode: crate::estimator::EstimatorMode,
         min_bounces: u32,
     ) -> Result<Self, crate::estimator::EstimatorLoadError> {
-        let estimators = crate::estimator::Estimators::load(scene, mode, min_bounces)?;
+        let mut estimators = crate::estimator::Estimators::load(scene, mode, min_bounces)?;
         let mut rs = Self::build(scene, estimators.is_some());
-        rs.estimators = estimators;
+        if let Some(ests) = &mut estimators {
+            rs.obstructed = rs.release_obstructed(scene, ests);
+        }
+        // Every instance released: a plain render.
+        rs.estimators = estimators.filter(|e| e.any_in_use());
         Ok(rs)
+    }
+
+    /// Leaves unused the estimators of instances whose see-through object
+    /// other geometry crosses, fills or holds (see
+    /// [`crate::estimator_overlap`]): those instances are traced for real.
+    /// Returns them, for the caller to say so. `self` must be the
+    /// estimator layout of `scene`.
+    pub fn release_obstructed(
+        &self,
+        scene: &Scene,
+        ests: &mut crate::estimator::Estimators,
+    ) -> Vec<crate::estimator_overlap::Obstruction> {
+        let obstructed = crate::estimator_overlap::find_obstructed(scene, &self.accel, ests);
+        if !obstructed.is_empty() {
+            let mut per_instance = ests.per_instance().to_vec();
+            for o in &obstructed {
+                per_instance[o.instance] = None;
+            }
+            ests.set_per_instance(per_instance);
+        }
+        obstructed
     }
 
     /// For plain path tracing: every instance whose mesh is used once,
@@ -207,6 +237,7 @@ impl RenderScene {
                 })
                 .collect(),
             estimators: None,
+            obstructed: Vec::new(),
         }
     }
 

@@ -756,6 +756,21 @@ fn icosphere_over_eight_levels() {
     );
 }
 
+/// A radius tiny against the centre's coordinates rounds the vertices
+/// together in f32: the sphere rendered as nothing, without a word (and a
+/// translucent one was called non-manifold).
+#[test]
+fn icosphere_radius_too_small_for_its_centre() {
+    expect_error(
+        |v| {
+            v["meshes"]["ball"]["icosphere"]["center"] = json!([0.5, 0.3, 0.0]);
+            v["meshes"]["ball"]["icosphere"]["radius"] = json!(1e-9);
+        },
+        "meshes.ball.icosphere.radius",
+        "too small for a sphere centred at",
+    );
+}
+
 #[test]
 fn icosphere_subdivisions_must_be_non_negative_integer() {
     expect_error(

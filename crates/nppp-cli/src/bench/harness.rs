@@ -261,7 +261,14 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         ));
     } else {
         match Estimators::load(&scene, EstimatorMode::Neural, 0) {
-            Ok(Some(e)) => {
+            Ok(Some(mut e)) => {
+                for o in rs_est
+                    .as_ref()
+                    .unwrap_or(&rs)
+                    .release_obstructed(&scene, &mut e)
+                {
+                    nppp_files::note!("[{name}] warning: {}", o.describe(&scene));
+                }
                 configs.extend(ps.iter().map(|&p| Config {
                     kind: Kind::Nppp,
                     m,
@@ -291,6 +298,10 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     if a.oracle && !estimator_files.is_empty() {
         oracle = Estimators::load(&scene, EstimatorMode::Oracle, 0)
             .with_context(|| format!("{}: oracle estimators", path.display()))?;
+        if let Some(e) = &mut oracle {
+            // Named once, with the network's estimators above.
+            rs_est.as_ref().unwrap_or(&rs).release_obstructed(&scene, e);
+        }
         if oracle.is_some() {
             configs.extend(ps.iter().map(|&p| Config {
                 kind: Kind::Oracle,

@@ -624,6 +624,11 @@ fn pilot(
     // the sample is the start of its first half if it goes on.
     let mut probes: Vec<Probe> = Vec::new();
     for index in 0..ests.list.len() {
+        // An estimator no instance uses (each one's object obstructed, see
+        // `crate::estimator_overlap`) has nothing to try: it stays off.
+        if !base_instances.contains(&Some(index as u32)) {
+            continue;
+        }
         for choice in candidates(&ests.list[index], opts) {
             configure(&mut ests, index, choice);
             rs.estimators = Some(ests);

@@ -146,7 +146,25 @@ impl Cx<'_> {
             MAX_ICOSPHERE_SUBDIVISIONS,
             " levels (level 8 already has 1,310,720 triangles)",
         )?;
-        Ok(icosphere_mesh(center, radius, subdivisions))
+        let mesh = icosphere_mesh(center, radius, subdivisions);
+        // A radius tiny against the centre's coordinates rounds vertices
+        // together in f32: the sphere would lose faces or vanish.
+        let collapsed = mesh.triangles.iter().any(|t| {
+            let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+            (b - a).cross(c - a) == Vec3::ZERO
+        });
+        if collapsed {
+            return Err(self.invalid(
+                &rp,
+                format!(
+                    "radius {radius} is too small for a sphere centred at {center} in 32-bit \
+                     floats: its vertices round together and triangles lose their area; \
+                     give a larger radius, or centre the sphere at the origin and place it \
+                     with the instance's transform"
+                ),
+            ));
+        }
+        Ok(mesh)
     }
 
     fn obj(&self, v: &Json, path: &str, smooth: bool) -> Res<Mesh> {
