@@ -255,12 +255,16 @@ fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
     }) {
         return true;
     }
-    // `j`'s large faces through `i` with their edges outside it (a floor
-    // cutting the object): `i`'s vertices on both sides of the face.
-    // Faces about as small as `i`'s own cross it at an edge (tested above):
-    // only faces larger than four of `i`'s typical edges are tested here,
-    // against every vertex of `i` (no transform: in `i`'s object space).
-    let large = 4.0 * cache.typical_edge(mi);
+    // `j`'s faces through `i` with their edges outside it (a floor cutting
+    // the object): `i`'s vertices on both sides of the face, in `i`'s
+    // object space. Where `j` has many triangles there, those about as
+    // small as `i`'s own cross it at an edge (tested above): only faces
+    // larger than four of `i`'s typical edges are tested then.
+    let large = if tris_j.len() <= 64 {
+        0.0
+    } else {
+        4.0 * cache.typical_edge(mi)
+    };
     let positions = &scene.meshes[mi].positions;
     let runs = cache.vertex_boxes(mi);
     tris_j.iter().any(|&[a, b, c]| {

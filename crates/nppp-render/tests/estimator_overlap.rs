@@ -68,6 +68,11 @@ fn geometry_crossing_filling_or_holding_a_see_through_object_releases_its_estima
     assert_eq!(obstructed(&scene(BALL, JADE, holder, glass)), released);
     // A glass ball holding a lamp: glass walks go inside too.
     assert_eq!(obstructed(&scene(BALL, glass, inside, LAMP)), released);
+    // A thin glass slab through a box's face: no edge of either crosses
+    // the other's surface, no vertex of one is inside the other.
+    let slab = r#"{"box": {"min": [-1, -0.05, -1], "max": [1, 0.05, 1]}}"#;
+    let block = r#"{"box": {"min": [0.5, -1, -1.5], "max": [3, 1, 6.5]}}"#;
+    assert_eq!(obstructed(&scene(slab, glass, block, WHITE)), released);
 }
 
 #[test]
