@@ -74,7 +74,9 @@ pub struct RenderArgs {
     /// other timing instrument: every entry goes on for free, straight
     /// through the sphere with the training data's typical exit throughput
     /// and bounce count, so its time is a neural render's with decoding
-    /// free (the gap between them is what the entries cost).
+    /// free (the gap between them is what the entries cost). The oracle and
+    /// `off` read no estimator file: a missing or mismatched one is
+    /// reported only by the modes that load it.
     #[arg(long, value_enum, default_value_t = EstimatorChoice::Auto)]
     pub estimators: EstimatorChoice,
     /// Next-event estimation through the estimator. `first`: sample the
