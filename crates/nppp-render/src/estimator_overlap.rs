@@ -2,13 +2,23 @@
 //!
 //! An estimator learns its object alone, in vacuum. The walks through a
 //! glass or translucent object go everywhere inside it, so another instance
-//! that crosses its surface, lies inside it (a lamp in a jade ball, glass
-//! balls in a medium) or holds it (a jade knot in a glass box: the walk's
-//! relative index of refraction would be wrong) makes every answer of that
-//! estimator wrong, not only those of rays whose straight chord meets the
-//! other geometry (those are traced for real already). Such an instance is
-//! traced for real instead: [`find_obstructed`] names it and the first other
-//! instance found in the way, and the renderer says so.
+//! that crosses its surface or lies inside it (a lamp in a jade ball, glass
+//! balls in a medium, a knot sunk into the floor) makes every answer of
+//! that estimator wrong, not only those of rays whose straight chord meets
+//! the other geometry (those are traced for real already). Such an instance
+//! is traced for real instead: [`find_obstructed`] names it and the first
+//! other instance found in the way, and the renderer says so.
+//!
+//! Two surfaces cross where an edge of one passes through a face of the
+//! other (two triangles that intersect, not coplanar, always have such an
+//! edge), tested both ways. Touching is not crossing: an edge that grazes
+//! a face, ends on it, or meets it at its border within a hair (a
+//! millionth of the object's size) does not count, so a glass box standing
+//! exactly on a floor keeps its estimator whatever the floor's
+//! triangulation. Geometry around the object (a room, a glass case) does
+//! not change its walks: indices of refraction do not nest (each surface
+//! refracts with its own index against vacuum), and a path inside another
+//! object's medium traces every object for real.
 //!
 //! An opaque object's walk stays outside the object: other geometry near it
 //! inside its sphere (a floor under a knot) is left to the exit rule (exit
@@ -24,8 +34,8 @@ use nppp_geom::BoundingSphere;
 use nppp_scene::Scene;
 use std::sync::OnceLock;
 
-/// An estimator instance whose object another instance crosses, fills or
-/// holds.
+/// An estimator instance whose object another instance crosses or lies
+/// inside.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Obstruction {
     /// The instance with the estimator (index into the scene's instances).
@@ -45,7 +55,7 @@ impl Obstruction {
             )
         };
         format!(
-            "{}.estimator is not used: {} crosses, fills or holds its see-through object, \
+            "{}.estimator is not used: {} crosses or lies inside its see-through object, \
              which the estimator learned alone, so the instance is traced for real \
              (move the geometry out of the object or remove the instance's `estimator` key)",
             name(self.instance),
@@ -74,16 +84,19 @@ fn boxes_overlap(a: (Vec3, Vec3), b: (Vec3, Vec3)) -> bool {
 struct MeshCache<'s> {
     scene: &'s Scene,
     accel: &'s Accel,
-    /// BVHs built here for meshes the scene merged into the world BLAS.
-    bvh: Vec<OnceLock<Blas>>,
     closed: Vec<OnceLock<bool>>,
     /// Object-space box of each triangle.
     triangle_boxes: Vec<OnceLock<Vec<(Vec3, Vec3)>>>,
-    typical_edge: Vec<OnceLock<f32>>,
+    /// Object-space box of each run of [`TRIANGLE_RUN`] consecutive triangles.
+    triangle_runs: Vec<OnceLock<Vec<(Vec3, Vec3)>>>,
     sphere: Vec<OnceLock<BoundingSphere>>,
-    /// The box of each run of [`VERTEX_RUN`] consecutive positions.
-    vertex_boxes: Vec<OnceLock<Vec<(Vec3, Vec3)>>>,
 }
+
+/// Triangles per box of [`MeshCache::triangle_runs`]: meshes list
+/// neighbouring triangles together (procedural ones by construction, OBJ
+/// exports mostly), so a run's box is small and a face far from most of
+/// an object skips most runs.
+const TRIANGLE_RUN: usize = 32;
 
 impl<'s> MeshCache<'s> {
     fn new(scene: &'s Scene, accel: &'s Accel) -> Self {
@@ -91,13 +104,16 @@ impl<'s> MeshCache<'s> {
         Self {
             scene,
             accel,
-            bvh: (0..n).map(|_| OnceLock::new()).collect(),
             closed: (0..n).map(|_| OnceLock::new()).collect(),
             triangle_boxes: (0..n).map(|_| OnceLock::new()).collect(),
-            typical_edge: (0..n).map(|_| OnceLock::new()).collect(),
+            triangle_runs: (0..n).map(|_| OnceLock::new()).collect(),
             sphere: (0..n).map(|_| OnceLock::new()).collect(),
-            vertex_boxes: (0..n).map(|_| OnceLock::new()).collect(),
         }
+    }
+
+    fn sphere(&self, mesh: usize) -> BoundingSphere {
+        *self.sphere[mesh]
+            .get_or_init(|| BoundingSphere::around(&self.scene.meshes[mesh].positions, 1e-3))
     }
 
     /// Whether the bounding spheres of instances `i` and `j` meet: unlike
@@ -106,9 +122,7 @@ impl<'s> MeshCache<'s> {
     /// told apart without a triangle test.
     fn spheres_meet(&self, i: usize, j: usize) -> bool {
         let world = |k: usize| {
-            let m = self.scene.instances[k].mesh;
-            let s = self.sphere[m]
-                .get_or_init(|| BoundingSphere::around(&self.scene.meshes[m].positions, 1e-3));
+            let s = self.sphere(self.scene.instances[k].mesh);
             let x = &self.accel.instances[k];
             (x.point_to_world(s.center), s.radius * x.scale)
         };
@@ -116,50 +130,40 @@ impl<'s> MeshCache<'s> {
         ci.distance(cj) <= ri + rj
     }
 
+    fn triangle(&self, mesh: usize, t: usize) -> [Vec3; 3] {
+        let m = &self.scene.meshes[mesh];
+        m.triangles[t].map(|v| m.positions[v as usize])
+    }
+
     /// The object-space triangles of `mesh` whose boxes overlap `region`
     /// (object space): one box test per triangle, no transform.
     fn triangles_in(&self, mesh: usize, region: (Vec3, Vec3)) -> Vec<[Vec3; 3]> {
-        let m = &self.scene.meshes[mesh];
-        let corners = |t: &[u32; 3]| t.map(|i| m.positions[i as usize]);
         let boxes = self.triangle_boxes[mesh].get_or_init(|| {
-            m.triangles
-                .iter()
+            (0..self.scene.meshes[mesh].triangles.len())
                 .map(|t| {
-                    let [a, b, c] = corners(t);
+                    let [a, b, c] = self.triangle(mesh, t);
                     (a.min(b).min(c), a.max(b).max(c))
                 })
                 .collect()
         });
-        boxes
-            .iter()
-            .zip(&m.triangles)
-            .filter(|(b, _)| boxes_overlap(**b, region))
-            .map(|(_, t)| corners(t))
+        (0..boxes.len())
+            .filter(|&t| boxes_overlap(boxes[t], region))
+            .map(|t| self.triangle(mesh, t))
             .collect()
     }
 
-    /// The mean edge length of `mesh` (its first edge per triangle).
-    fn typical_edge(&self, mesh: usize) -> f32 {
-        *self.typical_edge[mesh].get_or_init(|| {
-            let m = &self.scene.meshes[mesh];
-            let sum: f64 = m
-                .triangles
-                .iter()
-                .map(|t| m.positions[t[0] as usize].distance(m.positions[t[1] as usize]) as f64)
-                .sum();
-            (sum / m.triangles.len().max(1) as f64) as f32
-        })
-    }
-
-    fn vertex_boxes(&self, mesh: usize) -> &[(Vec3, Vec3)] {
-        self.vertex_boxes[mesh].get_or_init(|| {
-            self.scene.meshes[mesh]
-                .positions
-                .chunks(VERTEX_RUN)
-                .map(|run| {
-                    run.iter().fold(
+    fn triangle_runs(&self, mesh: usize) -> &[(Vec3, Vec3)] {
+        self.triangle_runs[mesh].get_or_init(|| {
+            let n = self.scene.meshes[mesh].triangles.len();
+            (0..n)
+                .step_by(TRIANGLE_RUN)
+                .map(|start| {
+                    (start..(start + TRIANGLE_RUN).min(n)).fold(
                         (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-                        |(lo, hi), &p| (lo.min(p), hi.max(p)),
+                        |(lo, hi), t| {
+                            let [a, b, c] = self.triangle(mesh, t);
+                            (lo.min(a).min(b).min(c), hi.max(a).max(b).max(c))
+                        },
                     )
                 })
                 .collect()
@@ -170,26 +174,31 @@ impl<'s> MeshCache<'s> {
     fn closed(&self, mesh: usize) -> bool {
         *self.closed[mesh].get_or_init(|| nppp_scene::open_edge(&self.scene.meshes[mesh]).is_none())
     }
-
-    /// A BVH of `mesh` in its object space: the scene's own where it has
-    /// one (instanced meshes), else one built here (meshes merged into the
-    /// world BLAS keep none).
-    fn bvh(&self, mesh: usize) -> &Blas {
-        if self.accel.blas[mesh].triangle_count() > 0 {
-            return &self.accel.blas[mesh];
-        }
-        self.bvh[mesh].get_or_init(|| Blas::build(&self.scene.meshes[mesh]))
-    }
 }
 
-/// Whether a segment from `a` to `b` (object space of `bvh`) crosses its mesh.
-fn segment_crosses(bvh: &Blas, a: Vec3, b: Vec3) -> bool {
-    let d = b - a;
-    let len = d.length();
+/// Whether the segment from `a` to `b` crosses triangle `t` through its
+/// inside: its ends lie on either side of the triangle's plane, each more
+/// than `tol` from it, and it meets the plane more than `tol` inside the
+/// triangle's edges. Grazing, ending on the face and touching its border
+/// are contact, not crossing.
+fn segment_crosses_triangle(a: Vec3, b: Vec3, t: &[Vec3; 3], tol: f32) -> bool {
+    let [p0, p1, p2] = *t;
+    let n = (p1 - p0).cross(p2 - p0);
+    let len = n.length();
     if !(len > 0.0 && len.is_finite()) {
         return false;
     }
-    bvh.occluded(Vec3A::from(a), Vec3A::from(d / len), 0.0, len)
+    let n = n / len;
+    let (da, db) = (n.dot(a - p0), n.dot(b - p0));
+    if !(da > tol && db < -tol || da < -tol && db > tol) {
+        return false;
+    }
+    let x = a + (b - a) * (da / (da - db));
+    // Distance inside each edge, in the triangle's plane.
+    [(p0, p1), (p1, p2), (p2, p0)].iter().all(|&(u, v)| {
+        let inward = n.cross(v - u).normalize_or_zero();
+        inward.dot(x - u) > tol
+    })
 }
 
 /// Whether `p` (object space) lies inside the closed mesh of `bvh`: the
@@ -233,110 +242,66 @@ fn box_to_object(x: &InstanceXform, region: (Vec3, Vec3)) -> (Vec3, Vec3) {
     (lo - pad, hi + pad)
 }
 
-/// Whether instance `j`'s geometry crosses, fills or holds instance `i`'s
-/// closed object.
+/// Whether instance `j`'s geometry crosses instance `i`'s object's surface
+/// or lies inside it. Everything is tested in `i`'s object space.
 fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
     let (scene, accel) = (cache.scene, cache.accel);
     let (xi, xj) = (&accel.instances[i], &accel.instances[j]);
     let (mi, mj) = (scene.instances[i].mesh, scene.instances[j].mesh);
     let (bi, bj) = (accel.instance_bounds[i], accel.instance_bounds[j]);
+    // A millionth of the object's size: closer than this is contact.
+    let tol = cache.sphere(mi).radius * 1e-6;
     // Only the triangles where the two boxes meet can cross.
     let both = (bi.0.max(bj.0), bi.1.min(bj.1));
-    // `j`'s triangles there, in `i`'s object space.
     let tris_j: Vec<[Vec3; 3]> = cache
         .triangles_in(mj, box_to_object(xj, both))
         .into_iter()
         .map(|t| t.map(|p| xi.point_to_object(xj.point_to_world(p))))
         .collect();
-    // `j`'s edges through `i`'s surface.
-    let bvh_i = &accel.blas[mi];
-    if tris_j.iter().any(|&[a, b, c]| {
-        segment_crosses(bvh_i, a, b) || segment_crosses(bvh_i, b, c) || segment_crosses(bvh_i, c, a)
-    }) {
-        return true;
-    }
-    // `j`'s faces through `i` with their edges outside it (a floor cutting
-    // the object): `i`'s vertices on both sides of the face, in `i`'s
-    // object space. Where `j` has many triangles there, those about as
-    // small as `i`'s own cross it at an edge (tested above): only faces
-    // larger than four of `i`'s typical edges are tested then.
-    let large = if tris_j.len() <= 64 {
-        0.0
-    } else {
-        4.0 * cache.typical_edge(mi)
-    };
-    let positions = &scene.meshes[mi].positions;
-    let runs = cache.vertex_boxes(mi);
-    tris_j.iter().any(|&[a, b, c]| {
-        (b - a).length().max((c - b).length()).max((a - c).length()) > large
-            && face_cuts(a, b, c, positions, runs)
-    }) || contains(cache, i, j)
-}
-
-/// Vertices per box of [`MeshCache::vertex_boxes`].
-const VERTEX_RUN: usize = 64;
-
-/// Whether points of `positions` lie strictly on both sides of triangle
-/// `a b c` within its prism (their projections inside it). `runs` bounds
-/// each run of [`VERTEX_RUN`] consecutive positions: a run that cannot add
-/// a side not seen yet is skipped whole, so a mesh beside a floor costs a
-/// test per run, not per vertex.
-fn face_cuts(a: Vec3, b: Vec3, c: Vec3, positions: &[Vec3], runs: &[(Vec3, Vec3)]) -> bool {
-    let n = (b - a).cross(c - a);
-    if n == Vec3::ZERO || !n.is_finite() {
+    if tris_j.is_empty() {
         return false;
     }
-    // Inside the prism: on the inner side of the three edge planes.
-    let (ea, eb, ec) = (n.cross(b - a), n.cross(c - b), n.cross(a - c));
-    let in_prism = |p: Vec3| ea.dot(p - a) >= 0.0 && eb.dot(p - b) >= 0.0 && ec.dot(p - c) >= 0.0;
-    let (mut above, mut below) = (false, false);
-    for (run, &(lo, hi)) in positions.chunks(VERTEX_RUN).zip(runs) {
-        // The run's heights over the plane lie in `centre +- reach`.
-        let centre = n.dot((lo + hi) * 0.5 - a);
-        let reach = n.abs().dot((hi - lo) * 0.5);
-        let may_add_above = !above && centre + reach > 0.0;
-        let may_add_below = !below && centre - reach < 0.0;
-        if !(may_add_above || may_add_below) {
-            continue;
-        }
-        for &p in run {
-            let h = n.dot(p - a);
-            if ((h > 0.0 && !above) || (h < 0.0 && !below)) && in_prism(p) {
-                above |= h > 0.0;
-                below |= h < 0.0;
-                if above && below {
-                    return true;
-                }
+    let runs = cache.triangle_runs(mi);
+    let edges = |t: &[Vec3; 3]| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])];
+    // Each face of `j` against the edges of `i`'s triangles near it, and
+    // each face of `i` there against the edges of `j`'s: the runs of `i`'s
+    // triangles whose boxes meet the face's box.
+    let crossing = tris_j.iter().any(|tj| {
+        let reach = (
+            tj[0].min(tj[1]).min(tj[2]) - Vec3::splat(tol),
+            tj[0].max(tj[1]).max(tj[2]) + Vec3::splat(tol),
+        );
+        let normal = (tj[1] - tj[0]).cross(tj[2] - tj[0]).normalize_or_zero();
+        // A run whose box lies off the face's plane holds no triangle that
+        // crosses the face (a floor under an object: only the runs at its
+        // bottom are tested).
+        let meets_plane = |(lo, hi): (Vec3, Vec3)| {
+            let centre = normal.dot((lo + hi) * 0.5 - tj[0]);
+            centre.abs() <= normal.abs().dot((hi - lo) * 0.5) + tol
+        };
+        runs.iter().enumerate().any(|(r, &run)| {
+            boxes_overlap(run, reach) && meets_plane(run) && {
+                let n = scene.meshes[mi].triangles.len();
+                (r * TRIANGLE_RUN..((r + 1) * TRIANGLE_RUN).min(n)).any(|t| {
+                    let ti = cache.triangle(mi, t);
+                    edges(&ti)
+                        .iter()
+                        .any(|&(a, b)| segment_crosses_triangle(a, b, tj, tol))
+                        || edges(tj)
+                            .iter()
+                            .any(|&(a, b)| segment_crosses_triangle(a, b, &ti, tol))
+                })
             }
-        }
-    }
-    false
-}
-
-/// Whether `j` lies inside `i` whole, or `i` inside `j` (both closed).
-fn contains(cache: &MeshCache, i: usize, j: usize) -> bool {
-    let (scene, accel) = (cache.scene, cache.accel);
-    let (xi, xj) = (&accel.instances[i], &accel.instances[j]);
-    let (mi, mj) = (scene.instances[i].mesh, scene.instances[j].mesh);
-    let first_vertex = |m: usize| {
-        let mesh = &scene.meshes[m];
-        mesh.triangles
-            .first()
-            .map(|t| mesh.positions[t[0] as usize])
-    };
-    if cache.closed(mi)
-        && let Some(p) = first_vertex(mj)
-        && inside_closed(&accel.blas[mi], xi.point_to_object(xj.point_to_world(p)))
-    {
-        return true;
-    }
-    cache.closed(mj)
-        && first_vertex(mi)
-            .is_some_and(|p| inside_closed(cache.bvh(mj), xj.point_to_object(xi.point_to_world(p))))
+        })
+    });
+    // No surfaces cross: each connected part of `j` there lies inside the
+    // object whole, or outside it. A vertex per triangle decides (a part
+    // has no vertex outside the region of its own triangles).
+    crossing || cache.closed(mi) && tris_j.iter().any(|t| inside_closed(&accel.blas[mi], t[0]))
 }
 
 /// Every instance that uses an estimator for a see-through object another
-/// instance crosses, fills or holds (see the module's doc), with the first
+/// instance crosses or lies inside (see the module's doc), with the first
 /// such other instance. Instances are tested against those whose world
 /// boxes overlap theirs, so a scene of many separate objects costs little.
 pub fn find_obstructed(scene: &Scene, accel: &Accel, ests: &Estimators) -> Vec<Obstruction> {

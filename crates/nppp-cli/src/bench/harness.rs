@@ -246,6 +246,8 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     let mut skipped = Vec::new();
     let ps: Vec<u32> = NPPP_P.iter().copied().filter(|&p| p < m).collect();
     let mut neural: Option<Estimators> = None;
+    // Whether the obstructed instances' warnings were printed.
+    let mut named_obstructions = false;
     if estimator_files.is_empty() {
         skipped.push((
             "NPPP (all P)".to_string(),
@@ -268,21 +270,29 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
                     .release_obstructed(&scene, &mut e)
                 {
                     nppp_files::note!("[{name}] warning: {}", o.describe(&scene));
+                    named_obstructions = true;
                 }
-                configs.extend(ps.iter().map(|&p| Config {
-                    kind: Kind::Nppp,
-                    m,
-                    p,
-                }));
-                // NEE through the estimator where an object takes light samples.
-                if entry_nee_of(&e) != EntryNee::Off {
+                if !e.any_in_use() {
+                    skipped.push((
+                        "NPPP (all P)".into(),
+                        "skipped: every estimator instance is obstructed (see the warnings)".into(),
+                    ));
+                } else {
                     configs.extend(ps.iter().map(|&p| Config {
-                        kind: Kind::NpppNee,
+                        kind: Kind::Nppp,
                         m,
                         p,
                     }));
+                    // NEE through the estimator where an object takes light samples.
+                    if entry_nee_of(&e) != EntryNee::Off {
+                        configs.extend(ps.iter().map(|&p| Config {
+                            kind: Kind::NpppNee,
+                            m,
+                            p,
+                        }));
+                    }
+                    neural = Some(e);
                 }
-                neural = Some(e);
             }
             Ok(None) => skipped.push(("NPPP (all P)".into(), "skipped: no estimator".into())),
             Err(e) => {
@@ -299,8 +309,19 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         oracle = Estimators::load(&scene, EstimatorMode::Oracle, 0)
             .with_context(|| format!("{}: oracle estimators", path.display()))?;
         if let Some(e) = &mut oracle {
-            // Named once, with the network's estimators above.
-            rs_est.as_ref().unwrap_or(&rs).release_obstructed(&scene, e);
+            for o in rs_est.as_ref().unwrap_or(&rs).release_obstructed(&scene, e) {
+                // Named once: above, where the network's estimators loaded.
+                if !named_obstructions {
+                    nppp_files::note!("[{name}] warning: {}", o.describe(&scene));
+                }
+            }
+            if !e.any_in_use() {
+                skipped.push((
+                    "oracle (all P)".into(),
+                    "skipped: every estimator instance is obstructed (see the warnings)".into(),
+                ));
+                oracle = None;
+            }
         }
         if oracle.is_some() {
             configs.extend(ps.iter().map(|&p| Config {
