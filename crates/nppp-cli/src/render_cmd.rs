@@ -501,8 +501,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     }
     let mut rs = RenderScene::with_estimators(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;
-    for o in &rs.obstructed {
-        nppp_files::note!("warning: {}: {}", a.scene.display(), o.describe(&scene));
+    for line in nppp_render::estimator_overlap::describe_all(&rs.obstructed, &scene) {
+        nppp_files::note!("warning: {}: {line}", a.scene.display());
     }
     if let Some(e) = &mut rs.estimators {
         let nee = match a.entry_nee {

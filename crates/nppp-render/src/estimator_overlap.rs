@@ -64,6 +64,25 @@ impl Obstruction {
     }
 }
 
+/// The warnings for `obstructed`, one line each for the first few and one
+/// line counting the rest (a room of 2,025 knots sunk into its floor would
+/// print 1,304 lines).
+pub fn describe_all(obstructed: &[Obstruction], scene: &Scene) -> Vec<String> {
+    const NAMED: usize = 3;
+    let mut lines: Vec<String> = obstructed
+        .iter()
+        .take(NAMED)
+        .map(|o| o.describe(scene))
+        .collect();
+    if obstructed.len() > NAMED {
+        lines.push(format!(
+            "and {} more instances' estimators are not used for the same reason",
+            obstructed.len() - NAMED
+        ));
+    }
+    lines
+}
+
 /// Whether paths walk inside an estimator's object: glass and translucent
 /// objects.
 fn see_through(scene: &Scene, instance: usize) -> bool {

@@ -18,6 +18,7 @@ use super::report::{report_csv, report_markdown};
 use crate::bench_cmd::BenchArgs;
 use anyhow::{Context, Result, ensure};
 use nppp_render::estimator::{EntryNee, EstimatorMode, EstimatorStats, Estimators};
+use nppp_render::estimator_overlap::describe_all;
 use nppp_render::metrics::{self, Errors};
 use nppp_render::{Image, RenderOptions, RenderScene, image_io};
 use std::path::{Path, PathBuf};
@@ -264,14 +265,14 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     } else {
         match Estimators::load(&scene, EstimatorMode::Neural, 0) {
             Ok(Some(mut e)) => {
-                for o in rs_est
+                let obstructed = rs_est
                     .as_ref()
                     .unwrap_or(&rs)
-                    .release_obstructed(&scene, &mut e)
-                {
-                    nppp_files::note!("[{name}] warning: {}", o.describe(&scene));
-                    named_obstructions = true;
+                    .release_obstructed(&scene, &mut e);
+                for line in describe_all(&obstructed, &scene) {
+                    nppp_files::note!("[{name}] warning: {line}");
                 }
+                named_obstructions = true;
                 if !e.any_in_use() {
                     skipped.push((
                         "NPPP (all P)".into(),
@@ -309,10 +310,11 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         oracle = Estimators::load(&scene, EstimatorMode::Oracle, 0)
             .with_context(|| format!("{}: oracle estimators", path.display()))?;
         if let Some(e) = &mut oracle {
-            for o in rs_est.as_ref().unwrap_or(&rs).release_obstructed(&scene, e) {
-                // Named once: above, where the network's estimators loaded.
-                if !named_obstructions {
-                    nppp_files::note!("[{name}] warning: {}", o.describe(&scene));
+            let obstructed = rs_est.as_ref().unwrap_or(&rs).release_obstructed(&scene, e);
+            // Named once: above, where the network's estimators loaded.
+            if !named_obstructions {
+                for line in describe_all(&obstructed, &scene) {
+                    nppp_files::note!("[{name}] warning: {line}");
                 }
             }
             if !e.any_in_use() {
