@@ -195,29 +195,76 @@ impl<'s> MeshCache<'s> {
     }
 }
 
-/// Whether the segment from `a` to `b` crosses triangle `t` through its
-/// inside: its ends lie on either side of the triangle's plane, each more
-/// than `tol` from it, and it meets the plane more than `tol` inside the
-/// triangle's edges. Grazing, ending on the face and touching its border
-/// are contact, not crossing.
-fn segment_crosses_triangle(a: Vec3, b: Vec3, t: &[Vec3; 3], tol: f32) -> bool {
-    let [p0, p1, p2] = *t;
-    let n = (p1 - p0).cross(p2 - p0);
-    let len = n.length();
-    if !(len > 0.0 && len.is_finite()) {
-        return false;
+/// A triangle with its unit normal, for the crossing tests.
+struct Face {
+    p: [Vec3; 3],
+    n: Vec3,
+}
+
+impl Face {
+    /// `None` for a triangle without area (nothing can cross it).
+    fn new(p: [Vec3; 3]) -> Option<Self> {
+        let n = (p[1] - p[0]).cross(p[2] - p[0]);
+        let len = n.length();
+        (len > 0.0 && len.is_finite()).then(|| Self { p, n: n / len })
     }
-    let n = n / len;
-    let (da, db) = (n.dot(a - p0), n.dot(b - p0));
-    if !(da > tol && db < -tol || da < -tol && db > tol) {
-        return false;
+
+    /// Signed distance of `x` from the face's plane.
+    fn height(&self, x: Vec3) -> f32 {
+        self.n.dot(x - self.p[0])
     }
-    let x = a + (b - a) * (da / (da - db));
-    // Distance inside each edge, in the triangle's plane.
-    [(p0, p1), (p1, p2), (p2, p0)].iter().all(|&(u, v)| {
-        let inward = n.cross(v - u).normalize_or_zero();
-        inward.dot(x - u) > tol
-    })
+
+    /// Whether all of `points` lie more than `tol` on one side of the
+    /// plane: then no edge between them crosses the face.
+    fn clear_of(&self, points: &[Vec3; 3], tol: f32) -> bool {
+        let h = points.map(|x| self.height(x));
+        h.iter().all(|&v| v > tol) || h.iter().all(|&v| v < -tol)
+    }
+
+    /// Whether the segment from `a` to `b` crosses the face through its
+    /// inside: its ends lie on either side of the plane, each more than
+    /// `tol` from it, and it meets the plane more than `tol` inside the
+    /// face's edges. Grazing, ending on the face and touching its border
+    /// are contact, not crossing.
+    fn crossed_by(&self, a: Vec3, b: Vec3, tol: f32) -> bool {
+        let (da, db) = (self.height(a), self.height(b));
+        if !(da > tol && db < -tol || da < -tol && db > tol) {
+            return false;
+        }
+        let x = a + (b - a) * (da / (da - db));
+        let [p0, p1, p2] = self.p;
+        // Distance inside each edge, in the face's plane.
+        [(p0, p1), (p1, p2), (p2, p0)].iter().all(|&(u, v)| {
+            let inward = self.n.cross(v - u).normalize_or_zero();
+            inward.dot(x - u) > tol
+        })
+    }
+
+    /// Whether an edge of `other` crosses this face.
+    fn crossed_by_edges_of(&self, other: &[Vec3; 3], tol: f32) -> bool {
+        !self.clear_of(other, tol)
+            && [(0, 1), (1, 2), (2, 0)]
+                .iter()
+                .any(|&(u, v)| self.crossed_by(other[u], other[v], tol))
+    }
+}
+
+/// Whether the segment from `a` to `b` passes through the box (slab test).
+fn segment_meets_box(a: Vec3, b: Vec3, (lo, hi): (Vec3, Vec3)) -> bool {
+    let d = b - a;
+    let (mut t0, mut t1) = (0.0f32, 1.0f32);
+    for k in 0..3 {
+        if d[k] == 0.0 {
+            if a[k] < lo[k] || a[k] > hi[k] {
+                return false;
+            }
+        } else {
+            let (u, v) = ((lo[k] - a[k]) / d[k], (hi[k] - a[k]) / d[k]);
+            t0 = t0.max(u.min(v));
+            t1 = t1.min(u.max(v));
+        }
+    }
+    t0 <= t1
 }
 
 /// Whether `p` (object space) lies inside the closed mesh of `bvh`: the
@@ -281,36 +328,46 @@ fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
         return false;
     }
     let runs = cache.triangle_runs(mi);
-    let edges = |t: &[Vec3; 3]| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])];
     // Each face of `j` against the edges of `i`'s triangles near it, and
     // each face of `i` there against the edges of `j`'s: the runs of `i`'s
     // triangles whose boxes meet the face's box.
+    // `i`'s own bounds, in its object space.
+    let (lo, hi) = accel.blas[mi].bounds;
+    let bounds_i = (lo - Vec3::splat(tol), hi + Vec3::splat(tol));
     let crossing = tris_j.iter().any(|tj| {
+        let Some(fj) = Face::new(*tj) else {
+            return false;
+        };
+        // The edges of `tj` that pass by the object at all (a floor's
+        // border never does).
+        let live: Vec<(Vec3, Vec3)> = [(tj[0], tj[1]), (tj[1], tj[2]), (tj[2], tj[0])]
+            .into_iter()
+            .filter(|&(a, b)| segment_meets_box(a, b, bounds_i))
+            .collect();
         let reach = (
             tj[0].min(tj[1]).min(tj[2]) - Vec3::splat(tol),
             tj[0].max(tj[1]).max(tj[2]) + Vec3::splat(tol),
         );
-        let normal = (tj[1] - tj[0]).cross(tj[2] - tj[0]).normalize_or_zero();
         // A run whose box lies off the face's plane holds no triangle that
         // crosses the face (a floor under an object: only the runs at its
         // bottom are tested).
         let meets_plane = |(lo, hi): (Vec3, Vec3)| {
-            let centre = normal.dot((lo + hi) * 0.5 - tj[0]);
-            centre.abs() <= normal.abs().dot((hi - lo) * 0.5) + tol
+            let centre = fj.height((lo + hi) * 0.5);
+            centre.abs() <= fj.n.abs().dot((hi - lo) * 0.5) + tol
         };
+        let n = scene.meshes[mi].triangles.len();
         runs.iter().enumerate().any(|(r, &run)| {
-            boxes_overlap(run, reach) && meets_plane(run) && {
-                let n = scene.meshes[mi].triangles.len();
-                (r * TRIANGLE_RUN..((r + 1) * TRIANGLE_RUN).min(n)).any(|t| {
+            boxes_overlap(run, reach)
+                && meets_plane(run)
+                && (r * TRIANGLE_RUN..((r + 1) * TRIANGLE_RUN).min(n)).any(|t| {
                     let ti = cache.triangle(mi, t);
-                    edges(&ti)
-                        .iter()
-                        .any(|&(a, b)| segment_crosses_triangle(a, b, tj, tol))
-                        || edges(tj)
-                            .iter()
-                            .any(|&(a, b)| segment_crosses_triangle(a, b, &ti, tol))
+                    fj.crossed_by_edges_of(&ti, tol)
+                        || !live.is_empty()
+                            && Face::new(ti).is_some_and(|fi| {
+                                !fi.clear_of(tj, tol)
+                                    && live.iter().any(|&(a, b)| fi.crossed_by(a, b, tol))
+                            })
                 })
-            }
         })
     });
     // No surfaces cross: each connected part of `j` there lies inside the
