@@ -328,12 +328,12 @@ fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
         return false;
     }
     let runs = cache.triangle_runs(mi);
-    // Each face of `j` against the edges of `i`'s triangles near it, and
-    // each face of `i` there against the edges of `j`'s: the runs of `i`'s
-    // triangles whose boxes meet the face's box.
     // `i`'s own bounds, in its object space.
     let (lo, hi) = accel.blas[mi].bounds;
     let bounds_i = (lo - Vec3::splat(tol), hi + Vec3::splat(tol));
+    // Each face of `j` against the edges of `i`'s triangles near it, and
+    // each face of `i` there against the edges of `j`'s: the runs of `i`'s
+    // triangles whose boxes meet the face's box.
     let crossing = tris_j.iter().any(|tj| {
         let Some(fj) = Face::new(*tj) else {
             return false;
