@@ -194,7 +194,9 @@ pub struct Accel {
     pub instance_bounds: Vec<(Vec3, Vec3)>,
 }
 
-fn transformed_bounds(x: &InstanceXform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
+/// The box around the eight corners of box `lo`..`hi` moved by `map` (a
+/// rigid transform: the box of the moved box), unpadded.
+pub(crate) fn mapped_box(lo: Vec3, hi: Vec3, map: impl Fn(Vec3) -> Vec3) -> (Vec3, Vec3) {
     let (mut a, mut b) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
     for i in 0..8 {
         let c = Vec3::new(
@@ -202,10 +204,15 @@ fn transformed_bounds(x: &InstanceXform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
             if i & 2 == 0 { lo.y } else { hi.y },
             if i & 4 == 0 { lo.z } else { hi.z },
         );
-        let w = x.point_to_world(c);
+        let w = map(c);
         a = a.min(w);
         b = b.max(w);
     }
+    (a, b)
+}
+
+fn transformed_bounds(x: &InstanceXform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
+    let (a, b) = mapped_box(lo, hi, |c| x.point_to_world(c));
     // Rotation rounding can shave the last ulp off a corner: pad a little.
     let pad = (b - a)
         .max_element()

@@ -25,10 +25,8 @@
 //! rays start from the plane through the sphere's centre) and to the
 //! ambiguous-chord test, as before.
 
-use crate::accel::{Accel, Blas, InstanceXform};
-use crate::bsdf::Bsdf;
+use crate::accel::{Accel, Blas, InstanceXform, mapped_box};
 use crate::estimator::Estimators;
-use crate::surface::SurfaceKind;
 use glam::{Vec3, Vec3A};
 use nppp_geom::BoundingSphere;
 use nppp_scene::Scene;
@@ -81,17 +79,6 @@ pub fn describe_all(obstructed: &[Obstruction], scene: &Scene) -> Vec<String> {
         ));
     }
     lines
-}
-
-/// Whether paths walk inside an estimator's object: glass and translucent
-/// objects.
-fn see_through(scene: &Scene, instance: usize) -> bool {
-    let material = &scene.materials[scene.instances[instance].material];
-    crate::medium::Medium::of(material).is_some()
-        || matches!(
-            SurfaceKind::of(material),
-            SurfaceKind::Scatter(Bsdf::Dielectric { .. })
-        )
 }
 
 fn boxes_overlap(a: (Vec3, Vec3), b: (Vec3, Vec3)) -> bool {
@@ -292,17 +279,7 @@ fn inside_closed(bvh: &Blas, p: Vec3) -> bool {
 
 /// The box around `region` (world space) in the object space of `x`.
 fn box_to_object(x: &InstanceXform, region: (Vec3, Vec3)) -> (Vec3, Vec3) {
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for k in 0..8 {
-        let c = Vec3::new(
-            if k & 1 == 0 { region.0.x } else { region.1.x },
-            if k & 2 == 0 { region.0.y } else { region.1.y },
-            if k & 4 == 0 { region.0.z } else { region.1.z },
-        );
-        let o = x.point_to_object(c);
-        lo = lo.min(o);
-        hi = hi.max(o);
-    }
+    let (lo, hi) = mapped_box(region.0, region.1, |c| x.point_to_object(c));
     // The rotation's rounding: a hair more, never less.
     let pad = (hi - lo).max_element() * 1e-5 + 1e-30;
     (lo - pad, hi + pad)
@@ -376,6 +353,19 @@ fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
     crossing || cache.closed(mi) && tris_j.iter().any(|t| inside_closed(&accel.blas[mi], t[0]))
 }
 
+/// Leaves the estimators of the `obstructed` instances unused: they are
+/// traced for real.
+pub fn release(ests: &mut Estimators, obstructed: &[Obstruction]) {
+    if obstructed.is_empty() {
+        return;
+    }
+    let mut per_instance = ests.per_instance().to_vec();
+    for o in obstructed {
+        per_instance[o.instance] = None;
+    }
+    ests.set_per_instance(per_instance);
+}
+
 /// Every instance that uses an estimator for a see-through object another
 /// instance crosses or lies inside (see the module's doc), with the first
 /// such other instance. Instances are tested against those whose world
@@ -386,7 +376,7 @@ pub fn find_obstructed(scene: &Scene, accel: &Accel, ests: &Estimators) -> Vec<O
     // In parallel: 2,025 glass knots on a floor test each against it.
     (0..scene.instances.len())
         .into_par_iter()
-        .filter(|&i| ests.per_instance()[i].is_some() && see_through(scene, i))
+        .filter(|&i| ests.per_instance()[i].is_some_and(|e| ests.list[e as usize].walks_inside()))
         .filter_map(|i| {
             let bi = accel.instance_bounds[i];
             (0..scene.instances.len())

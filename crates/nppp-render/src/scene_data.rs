@@ -92,13 +92,7 @@ impl RenderScene {
         ests: &mut crate::estimator::Estimators,
     ) -> Vec<crate::estimator_overlap::Obstruction> {
         let obstructed = crate::estimator_overlap::find_obstructed(scene, &self.accel, ests);
-        if !obstructed.is_empty() {
-            let mut per_instance = ests.per_instance().to_vec();
-            for o in &obstructed {
-                per_instance[o.instance] = None;
-            }
-            ests.set_per_instance(per_instance);
-        }
+        crate::estimator_overlap::release(ests, &obstructed);
         obstructed
     }
 

@@ -18,7 +18,7 @@ use super::report::{report_csv, report_markdown};
 use crate::bench_cmd::BenchArgs;
 use anyhow::{Context, Result, ensure};
 use nppp_render::estimator::{EntryNee, EstimatorMode, EstimatorStats, Estimators};
-use nppp_render::estimator_overlap::describe_all;
+use nppp_render::estimator_overlap::{Obstruction, describe_all, release};
 use nppp_render::metrics::{self, Errors};
 use nppp_render::{Image, RenderOptions, RenderScene, image_io};
 use std::path::{Path, PathBuf};
@@ -247,8 +247,9 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     let mut skipped = Vec::new();
     let ps: Vec<u32> = NPPP_P.iter().copied().filter(|&p| p < m).collect();
     let mut neural: Option<Estimators> = None;
-    // Whether the obstructed instances' warnings were printed.
-    let mut named_obstructions = false;
+    // The instances whose see-through object other geometry obstructs,
+    // once found and named (both kinds of estimators bind the same ones).
+    let mut obstructed: Option<Vec<Obstruction>> = None;
     if estimator_files.is_empty() {
         skipped.push((
             "NPPP (all P)".to_string(),
@@ -265,14 +266,14 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     } else {
         match Estimators::load(&scene, EstimatorMode::Neural, 0) {
             Ok(Some(mut e)) => {
-                let obstructed = rs_est
+                let found = rs_est
                     .as_ref()
                     .unwrap_or(&rs)
                     .release_obstructed(&scene, &mut e);
-                for line in describe_all(&obstructed, &scene) {
+                for line in describe_all(&found, &scene) {
                     nppp_files::note!("[{name}] warning: {line}");
                 }
-                named_obstructions = true;
+                obstructed = Some(found);
                 if !e.any_in_use() {
                     skipped.push((
                         "NPPP (all P)".into(),
@@ -310,11 +311,14 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
         oracle = Estimators::load(&scene, EstimatorMode::Oracle, 0)
             .with_context(|| format!("{}: oracle estimators", path.display()))?;
         if let Some(e) = &mut oracle {
-            let obstructed = rs_est.as_ref().unwrap_or(&rs).release_obstructed(&scene, e);
-            // Named once: above, where the network's estimators loaded.
-            if !named_obstructions {
-                for line in describe_all(&obstructed, &scene) {
-                    nppp_files::note!("[{name}] warning: {line}");
+            match &obstructed {
+                // Found and named above, where the network's estimators loaded.
+                Some(found) => release(e, found),
+                None => {
+                    let found = rs_est.as_ref().unwrap_or(&rs).release_obstructed(&scene, e);
+                    for line in describe_all(&found, &scene) {
+                        nppp_files::note!("[{name}] warning: {line}");
+                    }
                 }
             }
             if !e.any_in_use() {
