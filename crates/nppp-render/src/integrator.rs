@@ -486,10 +486,14 @@ fn shade(
             path.hero.get_or_insert(picked);
             Some(MediumVisit {
                 instance: hit.instance,
+                skin: 0.0,
             })
         } else {
             None
         };
+    }
+    if let Some(visit) = &mut path.medium {
+        visit.skin = crate::path::skin_behind(eps, wi, ng);
     }
     russian_roulette(path, u_rr)
 }
@@ -504,10 +508,12 @@ fn scatter_in_medium(
     path: &mut PathState,
     t_max: f32,
 ) -> Option<Next> {
-    let visit = path.medium?;
+    let visit = path.medium.as_mut()?;
     let medium = scene.media[visit.instance as usize]?;
     let hero = path.hero.as_mut()?;
-    let flight = medium.sample_free_flight(t_max, hero.channel, path.rng.uniform());
+    // From the surface the ray left, not its offset origin.
+    let skin = std::mem::take(&mut visit.skin);
+    let flight = medium.sample_free_flight(t_max + skin, hero.channel, path.rng.uniform());
     hero.apply(&mut path.beta, &flight);
     if !flight.scattered {
         return None;
@@ -515,7 +521,7 @@ fn scatter_in_medium(
     if path.depth >= s.max_bounces {
         return Some(Next::Terminate);
     }
-    let p = path.origin + path.dir * flight.t;
+    let p = path.origin + path.dir * (flight.t - skin);
     let (wi, pdf) = medium.sample_phase(path.dir, path.rng.uniform2());
     let u_rr = path.rng.uniform();
     path.prev_pdf = pdf;

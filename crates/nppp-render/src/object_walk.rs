@@ -130,14 +130,17 @@ impl ObjectTracer<'_> {
         // the medium: see `crate::medium`), and whether it is in the medium.
         let mut hero: Option<HeroChannel> = None;
         let mut in_medium = false;
+        // The medium on the ray behind its offset origin (`skin_behind`).
+        let mut skin = 0.0f32;
         loop {
             let hit = self.blas.intersect(o.into(), d.into(), 0.0, f32::INFINITY);
             if let (true, Some(hero), Some(medium)) = (in_medium, &mut hero, &self.medium) {
                 let t_max = hit.map_or(f32::INFINITY, |h| h.t);
-                let flight = medium.sample_free_flight(t_max, hero.channel, rng.uniform());
+                let flight = medium.sample_free_flight(t_max + skin, hero.channel, rng.uniform());
                 hero.apply(&mut beta, &flight);
                 if flight.scattered {
-                    let p = o + d * flight.t;
+                    let p = o + d * (flight.t - skin);
+                    skin = 0.0;
                     if bounces >= self.max_internal_bounces {
                         return Walk::Exit(self.leave(p, d, Vec3::ZERO, radiance, bounces));
                     }
@@ -214,6 +217,11 @@ impl ObjectTracer<'_> {
             }
             let eps = (p.abs().max_element().max(r) * OFFSET_REL).max(f32::MIN_POSITIVE);
             o = offset_ray_origin(p, ng, wi, eps);
+            skin = if in_medium {
+                crate::path::skin_behind(eps, wi, ng)
+            } else {
+                0.0
+            };
             d = wi;
             if beta == Vec3::ZERO {
                 return Walk::Exit(self.leave(o, d, beta, radiance, bounces));

@@ -44,6 +44,21 @@ pub struct PathState {
 pub struct MediumVisit {
     /// The instance whose medium it is (`RenderScene::media`).
     pub instance: u32,
+    /// How much of the medium lies on the ray behind its origin: a ray
+    /// leaving a surface starts a small offset off it ([`skin_behind`]),
+    /// and the free flight must cover that stretch too.
+    pub skin: f32,
+}
+
+/// The length of the ray `wi`, behind an origin moved `eps` off a surface
+/// of normal `ng`, back to that surface: the stretch of a medium the offset
+/// skipped. Without it a dense medium rendered dark (a skin of 2e-5 times
+/// the distance from the origin where nothing scattered: 0.8% at a mean
+/// free path of 0.011 at x = 278, 3% at 0.0011), and darker the farther
+/// from the origin it stood. Capped at 16 offsets for grazing rays.
+#[inline]
+pub fn skin_behind(eps: f32, wi: Vec3, ng: Vec3) -> f32 {
+    eps / wi.dot(ng).abs().max(1.0 / 16.0)
 }
 
 impl PathState {

@@ -61,18 +61,23 @@ fn an_absorbing_medium_darkens_a_furnace_and_more_at_higher_density() {
 /// A slab of medium (thickness `t` in mesh units, scaled by `scale`) in
 /// front of a uniform emitter, seen through a nearly parallel pinhole.
 fn slab_scene(material: &str, t: f32, scale: f32) -> String {
+    slab_scene_at(material, t, scale, 0.0)
+}
+
+/// [`slab_scene`] with everything moved by `x` along the x axis.
+fn slab_scene_at(material: &str, t: f32, scale: f32, x: f32) -> String {
     let h = 0.5 * t;
     format!(
         r#"{{
-  "camera": {{"position": [0, 0, -200], "look_at": [0, 0, 0], "fov_y_deg": 0.3, "width": 16, "height": 16}},
+  "camera": {{"position": [{x}, 0, -200], "look_at": [{x}, 0, 0], "fov_y_deg": 0.3, "width": 16, "height": 16}},
   "materials": {{"lamp": {{"type": "emitter", "radiance": [1, 1, 1]}}, "slab": {material}}},
   "meshes": {{
     "slab": {{"box": {{"min": [-1, -1, -{h}], "max": [1, 1, {h}]}}}},
     "light": {{"quad": [[-50, -50, 20], [-50, 50, 20], [50, 50, 20], [50, -50, 20]]}}
   }},
   "instances": [
-    {{"mesh": "slab", "material": "slab", "transform": {{"scale": {scale}}}}},
-    {{"mesh": "light", "material": "lamp"}}
+    {{"mesh": "slab", "material": "slab", "transform": {{"scale": {scale}, "translate": [{x}, 0, 0]}}}},
+    {{"mesh": "light", "material": "lamp", "transform": {{"translate": [{x}, 0, 0]}}}}
   ]
 }}"#
     )
@@ -96,6 +101,25 @@ fn absorption_alone_follows_beer_lambert_in_mesh_units() {
                 m[c]
             );
         }
+    }
+}
+
+#[test]
+fn absorption_follows_beer_lambert_far_from_the_origin() {
+    // At x = 5000 a ray leaves a surface 0.1 off it (the offset grows with
+    // the distance from the origin). The free flight into the medium must
+    // still start at the surface: the 0.1 it skipped made this slab 1.1x-
+    // 1.2x too bright (and dense media look like absorbers).
+    let sigma_a = [0.5f32, 1.0, 2.0];
+    let json = slab_scene_at(&translucent(1.0, [0.0; 3], sigma_a, 0.0), 1.0, 1.0, 5000.0);
+    let m = mean(&render_str(&json, 256, 5, 3));
+    for c in 0..3 {
+        let expect = (-(sigma_a[c]) as f64).exp();
+        assert!(
+            (m[c] - expect).abs() < 0.01 * expect,
+            "channel {c} is {}, Beer-Lambert gives {expect}",
+            m[c]
+        );
     }
 }
 

@@ -329,6 +329,57 @@ fn build_params() -> BvhBuildParams {
     }
 }
 
+/// Groups of more identical boxes than this get their ties broken
+/// ([`break_box_ties`]). A quad's two triangles share a box, so pairs are
+/// common and harmless.
+const TIED_GROUP_MIN: usize = 3;
+
+/// Widens the boxes of every group of more than two identical boxes, each
+/// by its own pseudo-random amount, so that obvhs' PLOC builder sees
+/// different merge costs. PLOC merges mutual nearest neighbours, and among
+/// n equal costs it finds one mutual pair per pass: n passes over n nodes.
+/// A mesh shrunk until its vertices round together (a knot scaled by 1e-4
+/// at x = 278 never finished building) or thousands of instances placed at
+/// one spot took quadratic time. Widened boxes still contain their
+/// primitives, so traversal stays exact; boxes with no twin (every
+/// committed scene's, bar the pairs) are left as they are, bit for bit.
+fn break_box_ties(aabbs: &mut [Aabb]) {
+    use std::collections::HashMap;
+    let key = |b: &Aabb| {
+        let (lo, hi) = (b.min.to_array(), b.max.to_array());
+        [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]].map(f32::to_bits)
+    };
+    let mut groups: HashMap<[u32; 6], usize> = HashMap::new();
+    for b in aabbs.iter() {
+        *groups.entry(key(b)).or_default() += 1;
+    }
+    if groups.values().all(|&n| n < TIED_GROUP_MIN) {
+        return;
+    }
+    for (i, b) in aabbs.iter_mut().enumerate() {
+        let n = groups[&key(b)];
+        if n < TIED_GROUP_MIN {
+            continue;
+        }
+        // Steps of at least a few ulps of the box's farthest coordinate (a
+        // smaller widening would round away) or 1/4096 of its size; up to
+        // as many steps as the group has boxes (capped), picked by a hash
+        // of the index (SplitMix64's finalizer).
+        let reach = b.min.abs().max(b.max.abs()).max_element();
+        let ulp = f32::from_bits(reach.to_bits() & 0x7f80_0000) * f32::EPSILON;
+        let step = (4.0 * ulp)
+            .max((b.max - b.min).max_element() / 4096.0)
+            .max(f32::MIN_POSITIVE);
+        let mut h = (i as u64).wrapping_add(0x9e37_79b9_7f4a_7c15);
+        h = (h ^ (h >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        h = (h ^ (h >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        h ^= h >> 31;
+        let steps = 1 + h % n.min(1 << 16) as u64;
+        let pad = Vec3A::splat(step * steps as f32);
+        *b = Aabb::new(b.min - pad, b.max + pad);
+    }
+}
+
 impl MeshBvh {
     /// Builds the BVH of `tris` (any count, including zero).
     pub fn build(tris: &[Triangle]) -> Self {
@@ -336,11 +387,10 @@ impl MeshBvh {
         let tree = if tris.is_empty() {
             Tree::empty()
         } else {
-            let bvh2 = obvhs::bvh2::builder::build_bvh2_from_tris(
-                tris,
-                build_params(),
-                &mut Duration::default(),
-            );
+            let mut aabbs: Vec<Aabb> = tris.iter().map(Triangle::aabb).collect();
+            break_box_ties(&mut aabbs);
+            let bvh2 =
+                obvhs::bvh2::builder::build_bvh2(&aabbs, build_params(), &mut Duration::default());
             Collapser::new(&bvh2, MESH_LEAF_MAX).run(&mut |prims: &[u32]| {
                 let first = packets.len();
                 for chunk in prims.chunks(4) {
@@ -454,10 +504,11 @@ impl InstanceBvh {
         let tree = if boxes.is_empty() {
             Tree::empty()
         } else {
-            let aabbs: Vec<Aabb> = boxes
+            let mut aabbs: Vec<Aabb> = boxes
                 .iter()
                 .map(|(lo, hi)| Aabb::new((*lo).into(), (*hi).into()))
                 .collect();
+            break_box_ties(&mut aabbs);
             let bvh2 =
                 obvhs::bvh2::builder::build_bvh2(&aabbs, build_params(), &mut Duration::default());
             Collapser::new(&bvh2, INSTANCE_LEAF_MAX).run(&mut |prims: &[u32]| {
