@@ -693,16 +693,17 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(p) = &plan {
         stats.seconds += plan_seconds - p.confirmation_seconds();
     }
-    image_io::write_exr(&img, &a.out).with_context(|| "writing the EXR")?;
-    if let Some(p) = &a.png {
-        let preview = image_io::Preview {
-            exposure_ev: a.exposure,
-            tonemap: match a.tonemap {
-                TonemapChoice::Clamp => image_io::Tonemap::Clamp,
-                TonemapChoice::Filmic => image_io::Tonemap::Filmic,
-            },
-        };
-        image_io::write_png_with(&img, p, &preview)?;
+    let preview = image_io::Preview {
+        exposure_ev: a.exposure,
+        tonemap: match a.tonemap {
+            TonemapChoice::Clamp => image_io::Tonemap::Clamp,
+            TonemapChoice::Filmic => image_io::Tonemap::Filmic,
+        },
+    };
+    match &a.png {
+        Some(p) => image_io::write_exr_and_preview(&img, &a.out, Some((p, &preview)))
+            .with_context(|| "--png: writing the EXR and its preview")?,
+        None => image_io::write_exr(&img, &a.out).with_context(|| "writing the EXR")?,
     }
     let m = img.mean();
     if let Some(e) = &rs.estimators {
@@ -849,10 +850,18 @@ fn part_settings(
     if let Some(c) = auto_choices {
         m.insert("auto".into(), c);
     }
-    for (i, inst) in scene.instances.iter().enumerate() {
+    // The oracle and `off` read no estimator file, so their parts do not
+    // depend on one (and render without them, as the full image does).
+    let reads_files = !matches!(a.estimators, EstimatorChoice::Off | EstimatorChoice::Oracle);
+    for (i, inst) in scene.instances.iter().enumerate().filter(|_| reads_files) {
         if let Some(path) = &inst.estimator {
-            let bytes = nppp_files::read_regular(path)
-                .with_context(|| format!("instances[{i}].estimator {}", path.display()))?;
+            let bytes = nppp_files::read_regular(path).with_context(|| {
+                format!(
+                    "{}: instances[{i}].estimator {}",
+                    a.scene.display(),
+                    path.display()
+                )
+            })?;
             let mut h = nppp_scene::hash::Fnv1a::new();
             h.bytes(&bytes);
             m.insert(

@@ -69,6 +69,18 @@ pub fn write_atomically(
 }
 
 pub fn write_exr(img: &Image, path: &Path) -> Result<(), ImageError> {
+    write_exr_and_preview(img, path, None)
+}
+
+/// Writes the EXR and, if asked, its PNG preview as a pair: the PNG is
+/// encoded first and put in place before the EXR is, and if it cannot be
+/// written the EXR is left as it was (a failed run must not leave a new
+/// EXR beside an old preview).
+pub fn write_exr_and_preview(
+    img: &Image,
+    path: &Path,
+    preview: Option<(&Path, &Preview)>,
+) -> Result<(), ImageError> {
     use exr::prelude::{Encoding, LineOrder, SpecificChannels, Vec2, WritableImage};
     // exr's default encoding leaves the line order unspecified, and its
     // parallel compressor then writes blocks as they finish: the same pixels
@@ -82,7 +94,24 @@ pub fn write_exr(img: &Image, path: &Path) -> Result<(), ImageError> {
         let p = img.pixels[y * img.width as usize + x];
         (p[0], p[1], p[2])
     });
-    write_atomically(path, |tmp| {
+    let png = match preview {
+        Some((png_path, p)) => Some((
+            png_path,
+            png_bytes(img, p).map_err(|msg| ImageError::Write {
+                path: png_path.into(),
+                msg,
+            })?,
+        )),
+        None => None,
+    };
+    if let Some((png_path, _)) = &png {
+        nppp_files::create_parent(png_path).map_err(|e| ImageError::Write {
+            path: (*png_path).into(),
+            msg: e.to_string(),
+        })?;
+    }
+    let mut png_error = None;
+    let written = write_atomically(path, |tmp| {
         exr::prelude::Image::from_encoded_channels(
             (img.width as usize, img.height as usize),
             encoding,
@@ -90,8 +119,40 @@ pub fn write_exr(img: &Image, path: &Path) -> Result<(), ImageError> {
         )
         .write()
         .to_file(tmp)
-        .map_err(|e| e.to_string())
-    })
+        .map_err(|e| e.to_string())?;
+        if let Some((png_path, bytes)) = &png
+            && let Err(e) = nppp_files::write_atomic(png_path, bytes)
+        {
+            let msg = format!("{e} (the EXR {} was left as it was)", path.display());
+            png_error = Some(ImageError::Write {
+                path: (*png_path).into(),
+                msg: msg.clone(),
+            });
+            return Err(msg);
+        }
+        Ok(())
+    });
+    match png_error {
+        Some(e) => Err(e),
+        None => written,
+    }
+}
+
+/// The PNG preview's bytes.
+fn png_bytes(img: &Image, preview: &Preview) -> Result<Vec<u8>, String> {
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, img.width, img.height);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().map_err(|e| e.to_string())?;
+    let data: Vec<u8> = img
+        .pixels
+        .iter()
+        .flat_map(|p| p.map(|x| srgb_encode(preview.map(x))))
+        .collect();
+    w.write_image_data(&data).map_err(|e| e.to_string())?;
+    w.finish().map_err(|e| e.to_string())?;
+    Ok(out)
 }
 
 pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
@@ -180,20 +241,12 @@ pub fn write_png(img: &Image, path: &Path) -> Result<(), ImageError> {
 
 /// Writes an sRGB PNG preview with an exposure and a tone curve.
 pub fn write_png_with(img: &Image, path: &Path, preview: &Preview) -> Result<(), ImageError> {
+    let bytes = png_bytes(img, preview).map_err(|msg| ImageError::Write {
+        path: path.into(),
+        msg,
+    })?;
     write_atomically(path, |tmp| {
-        let f = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
-        let mut enc = png::Encoder::new(std::io::BufWriter::new(f), img.width, img.height);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut w = enc.write_header().map_err(|e| e.to_string())?;
-        let data: Vec<u8> = img
-            .pixels
-            .iter()
-            .flat_map(|p| p.map(|x| srgb_encode(preview.map(x))))
-            .collect();
-        w.write_image_data(&data).map_err(|e| e.to_string())?;
-        w.finish().map_err(|e| e.to_string())?;
-        Ok(())
+        std::fs::write(tmp, &bytes).map_err(|e| e.to_string())
     })
 }
 

@@ -16,5 +16,8 @@ pub mod procedural;
 mod shapes;
 pub use error::SceneError;
 pub use hash::{material_content_hash, mesh_content_hash, scene_content_hash};
-pub use load::{MAX_IMAGE_SIDE, load_scene, parse_material, parse_mesh, parse_scene};
+pub use load::{
+    MAX_IMAGE_SIDE, MAX_WORLD_COORD, MIN_FLOAT_STEPS, MIN_WORLD_SIZE, load_scene, parse_material,
+    parse_mesh, parse_scene, precision_problem,
+};
 pub use shapes::{MAX_ICOSPHERE_SUBDIVISIONS, box_mesh, icosphere_mesh, quad_mesh};

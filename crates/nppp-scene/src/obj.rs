@@ -65,7 +65,14 @@ pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
         match tokens.next() {
             Some("v") => positions.push(parse_vec3(&mut tokens, "v", line)?),
             Some("vn") => normals.push(parse_vec3(&mut tokens, "vn", line)?),
-            Some("vt") => texcoords += 1,
+            Some("vt") => {
+                // Texture coordinates are counted (faces index them), not used.
+                if tokens.clone().next().is_none() {
+                    return Err(at(line, "`vt` needs at least 1 coordinate"));
+                }
+                check_extra_numbers(&mut tokens, "vt", line, 3)?;
+                texcoords += 1;
+            }
             Some("f") => {
                 let start = corners.len();
                 for tok in tokens {
@@ -184,8 +191,35 @@ fn parse_vec3<'a>(
         *slot = value;
     }
     // Further numbers (a `w`, or vertex colours some exporters append) carry
-    // nothing a flat-coloured triangle mesh uses.
+    // nothing a flat-coloured triangle mesh uses, but anything else there is
+    // a damaged line.
+    check_extra_numbers(tokens, what, line, 4)?;
     Ok(Vec3::from_array(xyz))
+}
+
+/// The rest of a line whose values nppp does not use: at most `max`
+/// tokens, each a finite number.
+fn check_extra_numbers<'a>(
+    tokens: &mut impl Iterator<Item = &'a str>,
+    what: &str,
+    line: usize,
+    max: usize,
+) -> Result<(), ObjError> {
+    for (k, tok) in tokens.enumerate() {
+        if k == max {
+            return Err(at(
+                line,
+                format!("`{what}` has more values than an OBJ line holds (`{tok}`)"),
+            ));
+        }
+        if !tok.parse::<f32>().is_ok_and(f32::is_finite) {
+            return Err(at(
+                line,
+                format!("`{what}` value `{tok}` is not a finite number"),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Parses `v`, `v/vt`, `v//vn` or `v/vt/vn`, resolving negative indices

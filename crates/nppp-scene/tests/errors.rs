@@ -1395,3 +1395,40 @@ fn every_error_message_names_the_file() {
     );
     check(&err, "camera.fov_y_deg", "180");
 }
+
+/// Sizes 32-bit float geometry cannot hold: beyond 1e12 the intersection
+/// test's products overflow (8e12 rendered 16% dark), under 1e-9 they
+/// underflow, an object spanning a few float steps at its place has its
+/// vertices rounded together (its tree took minutes to build), and a medium
+/// whose mean free path is under one step cannot move its walks.
+#[test]
+fn sizes_beyond_32_bit_float_geometry() {
+    expect_error(
+        |v| v["instances"][1]["transform"]["translate"] = json!([3e12, 0, 0]),
+        "instances[1].transform",
+        "beyond 1e12",
+    );
+    expect_error(
+        |v| v["instances"][2]["transform"] = json!({"scale": 1e-10}),
+        "instances[2].transform",
+        "below 1e-9",
+    );
+    expect_error(
+        |v| v["instances"][2]["transform"] = json!({"scale": 1e-4, "translate": [300, 0, 0]}),
+        "instances[2].transform",
+        "steps of a 32-bit float there",
+    );
+    // The same ball 1,000 times larger is fine there.
+    let mut ok = base();
+    ok["instances"][2]["transform"] = json!({"scale": 0.1, "translate": [300, 0, 0]});
+    parse(&ok).expect("a ball 0.2 across at x = 300 loads");
+    expect_error(
+        |v| {
+            v["materials"]["glass"] = json!({"type": "translucent", "ior": 1.5,
+                "sigma_s": [1e9, 1e9, 1e9], "sigma_a": [0, 0, 0]});
+            v["instances"][2]["transform"] = json!({"scale": 10, "translate": [300, 0, 0]});
+        },
+        "instances[2].transform",
+        "mean free path",
+    );
+}

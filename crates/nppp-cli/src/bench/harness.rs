@@ -16,7 +16,7 @@ use super::reference::{
 };
 use super::report::{report_csv, report_markdown};
 use crate::bench_cmd::BenchArgs;
-use anyhow::{Context, Result, ensure};
+use anyhow::{Context, Result, bail, ensure};
 use nppp_render::estimator::{EntryNee, EstimatorMode, EstimatorStats, Estimators};
 use nppp_render::estimator_overlap::{Obstruction, describe_all, release};
 use nppp_render::metrics::{self, Errors};
@@ -77,6 +77,23 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
         .iter()
         .map(|n| resolve_scene(&a.scenes_dir, n))
         .collect::<Result<_>>()?;
+    // Each scene's reference, previews and plots go under its file name.
+    for (i, p) in paths.iter().enumerate() {
+        if let Some(q) = paths[..i].iter().find(|q| scene_name(q) == scene_name(p)) {
+            bail!(
+                "--scenes: {} and {} have the same file name, so their outputs in --out would \
+                 overwrite each other; rename one (or run them separately)",
+                q.display(),
+                p.display()
+            );
+        }
+    }
+    if a.out.exists() && !a.out.is_dir() {
+        bail!(
+            "--out {}: is a file; bench writes a folder of results",
+            a.out.display()
+        );
+    }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let machine = Machine::probe();
     nppp_files::note!(

@@ -224,10 +224,13 @@ impl TrainConfig {
             bail!("lr_decay_from and lr_final must be in [0, 1]");
         }
         if !(self.energy_weight.is_finite() && self.energy_weight >= 0.0) {
-            bail!("energy weight {} must be >= 0", self.energy_weight);
+            bail!(
+                "--energy-weight {}: must be a number >= 0",
+                self.energy_weight
+            );
         }
         if !(self.vertex_weight.is_finite() && self.vertex_weight >= 0.0) {
-            bail!("vertex weight {} must be >= 0", self.vertex_weight);
+            bail!("vertex weight {} must be a number >= 0", self.vertex_weight);
         }
         if self.holdout_every < 2 {
             bail!("holdout_every must be at least 2");

@@ -161,6 +161,13 @@ fn train_on(
                 state.steps_per_epoch
             );
         }
+        if state.step > total_steps {
+            bail!(
+                "--resume: the checkpoint is at step {}, past the {total_steps} steps asked for \
+                 (--steps or --epochs); ask for more steps to go on training",
+                state.step
+            );
+        }
         let model = load_weights(&ckpt, &ad)?;
         let optim = load_optimizer(&ckpt, make_optimizer(&cfg))?;
         (model, optim, state, ckpt.meta, ckpt.log)

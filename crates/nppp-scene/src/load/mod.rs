@@ -22,8 +22,57 @@ pub const MAX_IMAGE_SIDE: u32 = 16384;
 /// transform) or of the camera. The renderer works in 32-bit floats: BVH
 /// surface areas, squared distances and ray offsets must stay finite and
 /// meaningful, and past this they do not (a box at 3e38 scaled by 2 used to
-/// reach the BVH builder as infinity).
-pub const MAX_WORLD_COORD: f64 = 1e15;
+/// reach the BVH builder as infinity), and the ray-triangle test's
+/// determinants (products of three lengths) must not overflow: the Cornell
+/// box scaled to 8e12 rendered 16% dark and at 3e13 black.
+pub const MAX_WORLD_COORD: f64 = 1e12;
+/// Smallest world-space size (the longest side of its box) of an instance:
+/// below about 1e-13 the ray-triangle test's products of three lengths
+/// leave the 32-bit float range (the Cornell box scaled to 6e-14 rendered
+/// 13% dark, at 6e-16 black).
+pub const MIN_WORLD_SIZE: f64 = 1e-9;
+/// An instance must span at least this many 32-bit float steps at its
+/// distance from the origin: below it its vertices round together (a knot
+/// scaled to 2e-4 at x = 278 spans 7; its shape is gone, and building its
+/// tree took minutes).
+pub const MIN_FLOAT_STEPS: f64 = 8.0;
+
+/// What makes an object spanning `lo..hi` (world space) too small for
+/// 32-bit float geometry, if anything: its size ([`MIN_WORLD_SIZE`]), the
+/// float steps it spans at its place ([`MIN_FLOAT_STEPS`]), or a medium's
+/// mean free path `free_path` (world units) under one float step.
+pub fn precision_problem(lo: DVec3, hi: DVec3, free_path: Option<f64>) -> Option<String> {
+    let size = (hi - lo).max_element();
+    let reach = lo.abs().max(hi.abs()).max_element();
+    if !(size.is_finite() && reach.is_finite()) {
+        return None;
+    }
+    // One float step (ulp) of the farthest coordinate, in f32.
+    let r = (reach as f32).max(f32::MIN_POSITIVE);
+    let step = f64::from(f32::from_bits(r.to_bits() & 0x7f80_0000) * f32::EPSILON);
+    if size > 0.0 && size < MIN_WORLD_SIZE {
+        return Some(format!(
+            "is {size:.3e} across, below {MIN_WORLD_SIZE:e} (32-bit float intersection tests \
+             lose it); scale the scene up"
+        ));
+    }
+    if size > 0.0 && size < MIN_FLOAT_STEPS * step {
+        return Some(format!(
+            "is {size:.3e} across at {reach:.3e} from the origin, only {:.1} steps of a 32-bit \
+             float there (at least {MIN_FLOAT_STEPS} are needed): its vertices round together; \
+             scale it up or move the scene nearer the origin",
+            size / step
+        ));
+    }
+    match free_path {
+        Some(f) if f < step => Some(format!(
+            "has a mean free path of {f:.3e}, below one step of a 32-bit float at {reach:.3e} \
+             from the origin ({step:.3e}): its walks cannot move; lower its sigma_s and sigma_a \
+             or move the object nearer the origin"
+        )),
+        _ => None,
+    }
+}
 
 /// Reads and validates a scene file. Relative OBJ and estimator paths are
 /// resolved against the file's folder.
@@ -336,7 +385,14 @@ impl Cx<'_> {
             .iter()
             .map(|(name, v)| self.mesh(v, &join_key(&mesh_path, name)))
             .collect::<Res<Vec<Mesh>>>()?;
-        self.check_world_extent(&camera, &meshes, &mesh_names, &instances)?;
+        self.check_world_extent(
+            &camera,
+            &meshes,
+            &mesh_names,
+            &materials,
+            &material_names,
+            &instances,
+        )?;
         self.check_translucent_closed(
             &meshes,
             &mesh_names,
@@ -402,15 +458,30 @@ impl Cx<'_> {
 
     /// Every instance's vertices, transformed to world space (in f64, so an
     /// overflow is seen rather than produced), and the camera lie within
-    /// `MAX_WORLD_COORD`. The check uses each mesh's bounding box corners: a
-    /// rotation maps the box to one containing the vertices' images.
+    /// `MAX_WORLD_COORD`; every instance is at least `MIN_WORLD_SIZE` across
+    /// and `MIN_FLOAT_STEPS` float steps at its place, and a medium's mean
+    /// free path is at least one. The check uses each mesh's bounding box
+    /// corners: a rotation maps the box to one containing the vertices'
+    /// images.
     fn check_world_extent(
         &self,
         camera: &Camera,
         meshes: &[Mesh],
         mesh_names: &[String],
+        materials: &[Material],
+        material_names: &[String],
         instances: &[Instance],
     ) -> Res<()> {
+        // Each translucent material's densest channel (mesh units).
+        let materials_sigma_t: Vec<Option<f64>> = materials
+            .iter()
+            .map(|m| match m {
+                Material::Translucent {
+                    sigma_s, sigma_a, ..
+                } => Some(f64::from((*sigma_s + *sigma_a).max_element())).filter(|&s| s > 0.0),
+                _ => None,
+            })
+            .collect();
         let too_far = |v: DVec3| !v.is_finite() || v.abs().max_element() > MAX_WORLD_COORD;
         if too_far(camera.position.as_dvec3()) {
             return Err(self.invalid(
@@ -443,6 +514,10 @@ impl Cx<'_> {
                 );
                 rot * (c * t.scale as f64) + t.translation.as_dvec3()
             });
+            let (wlo, whi) = far.clone().fold(
+                (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+                |(a, b), c| (a.min(c), b.max(c)),
+            );
             if let Some(c) = far.clone().find(|&c| too_far(c)) {
                 return Err(self.invalid(
                     &format!("instances[{i}].transform"),
@@ -452,6 +527,21 @@ impl Cx<'_> {
                         c.x,
                         c.y,
                         c.z
+                    ),
+                ));
+            }
+            let sigma_t = materials_sigma_t.get(inst.material).copied().flatten();
+            if let Some(why) = precision_problem(wlo, whi, sigma_t.map(|s| t.scale as f64 / s)) {
+                return Err(self.invalid(
+                    &format!("instances[{i}].transform"),
+                    format!(
+                        "mesh \"{}\"{} {why}",
+                        mesh_names[inst.mesh],
+                        match sigma_t {
+                            Some(_) =>
+                                format!(" with material \"{}\"", material_names[inst.material]),
+                            None => String::new(),
+                        }
                     ),
                 ));
             }
