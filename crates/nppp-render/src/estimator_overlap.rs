@@ -1,39 +1,38 @@
-//! Other geometry inside an estimator's see-through object.
+//! Other geometry within an estimator's object.
 //!
-//! An estimator learns its object alone, in vacuum. The walks through a
-//! glass or translucent object go everywhere inside it, so another instance
-//! that crosses its surface or lies inside it (a lamp in a jade ball, glass
-//! balls in a medium, a knot sunk into the floor) makes every answer of
-//! that estimator wrong, not only those of rays whose straight chord meets
-//! the other geometry (those are traced for real already). Such an instance
-//! is traced for real instead: [`find_obstructed`] names it and the first
-//! other instance found in the way, and the renderer says so.
+//! An estimator learns its object alone, in vacuum. The object's walks go
+//! everywhere inside its convex hull: through a glass or translucent
+//! object's inside, and from one part of any object to another (a ray
+//! leaving one strand of a knot crosses its hole to the next strand). So
+//! another instance with geometry inside that hull (a lamp in a jade ball,
+//! glass balls in a medium, a ball in a knot's hole, a knot sunk into the
+//! floor or through another knot) makes every answer of that estimator
+//! wrong, not only those of rays whose straight chord meets the other
+//! geometry (those are traced for real already): an oracle with a lamp in
+//! a glass knot's hole rendered 26% dark, a gold knot's 38%. Such an
+//! instance is traced for real instead: [`find_obstructed`] names it and
+//! the first other instance found in its way, and the renderer says so.
 //!
-//! Two surfaces cross where an edge of one passes through a face of the
-//! other (two triangles that intersect, not coplanar, always have such an
-//! edge), tested both ways. Touching is not crossing: an edge that grazes
-//! a face, ends on it, or meets it at its border within a hair (a
-//! millionth of the object's size) does not count, so a glass box standing
-//! exactly on a floor keeps its estimator whatever the floor's
-//! triangulation. Geometry around the object (a room, a glass case) does
-//! not change its walks: indices of refraction do not nest (each surface
-//! refracts with its own index against vacuum), and a path inside another
-//! object's medium traces every object for real.
-//!
-//! An opaque object's walk stays outside the object: other geometry near it
-//! inside its sphere (a floor under a knot) is left to the exit rule (exit
-//! rays start from the plane through the sphere's centre) and to the
-//! ambiguous-chord test, as before.
+//! The hull is the mesh's exact convex hull (the `quickhull` crate), as
+//! planes moved out to hold every vertex in 32-bit floats. A triangle of
+//! the other instance meets it where clipping the triangle by every plane
+//! leaves something. Touching is not meeting: the planes are moved in by a
+//! millionth of the object's size first, so a knot resting on a floor, or
+//! a glass box standing exactly on one, keeps its estimator whatever the
+//! floor's triangulation. Geometry around the hull (a room, a glass case,
+//! a floor below the object that cuts its bounding sphere) is left to the
+//! exit rule (exit rays start from the plane through the sphere's centre)
+//! and to the ambiguous-chord test, as before.
 
-use crate::accel::{Accel, Blas, InstanceXform, mapped_box};
+use crate::accel::{Accel, InstanceXform, mapped_box};
 use crate::estimator::Estimators;
-use glam::{Vec3, Vec3A};
+use glam::Vec3;
 use nppp_geom::BoundingSphere;
 use nppp_scene::Scene;
 use std::sync::OnceLock;
 
-/// An estimator instance whose object another instance crosses or lies
-/// inside.
+/// An estimator instance whose object's hull holds geometry of another
+/// instance.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Obstruction {
     /// The instance with the estimator (index into the scene's instances).
@@ -53,9 +52,10 @@ impl Obstruction {
             )
         };
         format!(
-            "{}.estimator is not used: {} crosses or lies inside its see-through object, \
-             which the estimator learned alone, so the instance is traced for real \
-             (move the geometry out of the object or remove the instance's `estimator` key)",
+            "{}.estimator is not used: {} reaches into its object or between its parts \
+             (the object's convex hull), where the estimator, which learned the object alone, \
+             does not see it; the instance is traced for real (move the geometry out of the \
+             hull or remove the instance's `estimator` key)",
             name(self.instance),
             name(self.other)
         )
@@ -85,24 +85,157 @@ fn boxes_overlap(a: (Vec3, Vec3), b: (Vec3, Vec3)) -> bool {
     a.0.cmple(b.1).all() && b.0.cmple(a.1).all()
 }
 
+/// A mesh's convex hull (object space): the points `x` with
+/// `n.dot(x) <= h` for every plane `(n, h)`.
+struct Hull {
+    planes: Vec<(Vec3, f32)>,
+    centre: Vec3,
+    /// For directions from `centre` (a cube map of [`FACING_CELLS`]^2 cells
+    /// per side), the plane facing that way most: the one a triangle that
+    /// lies that way is tested against first, which usually dismisses it.
+    facing: Vec<u32>,
+}
+
+/// Cells per cube-map side edge of [`Hull::facing`].
+const FACING_CELLS: usize = 16;
+
+/// The cube-map cell of direction `d`.
+fn facing_cell(d: Vec3) -> usize {
+    let a = d.abs();
+    let (axis, u, v, m) = if a.x >= a.y && a.x >= a.z {
+        (0, d.y, d.z, a.x)
+    } else if a.y >= a.z {
+        (1, d.x, d.z, a.y)
+    } else {
+        (2, d.x, d.y, a.z)
+    };
+    let side = axis * 2 + usize::from(d[axis] < 0.0);
+    let m = m.max(f32::MIN_POSITIVE);
+    let cell =
+        |w: f32| (((w / m + 1.0) * 0.5 * FACING_CELLS as f32) as usize).min(FACING_CELLS - 1);
+    (side * FACING_CELLS + cell(u)) * FACING_CELLS + cell(v)
+}
+
+impl Hull {
+    fn of(positions: &[Vec3]) -> Self {
+        let (lo, hi) = positions.iter().fold(
+            (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+            |(lo, hi), &p| (lo.min(p), hi.max(p)),
+        );
+        let points: Vec<glam_quickhull::Vec3A> = positions
+            .iter()
+            .map(|p| glam_quickhull::Vec3A::from_array(p.to_array()))
+            .collect();
+        let hull = quickhull::ConvexTriangleMesh::try_from_points(&points, None).ok();
+        let mut planes = Vec::new();
+        let mut centre = (lo + hi) * 0.5;
+        if let Some(hull) = hull.filter(|h| h.indices().len() >= 4) {
+            let verts: Vec<Vec3> = hull
+                .vertices()
+                .iter()
+                .map(|v| Vec3::from_array(v.to_array()))
+                .collect();
+            centre = verts.iter().copied().sum::<Vec3>() / verts.len() as f32;
+            for tri in hull.indices() {
+                let [a, b, c] = tri.map(|k| verts[k as usize]);
+                let Some(mut n) = (b - a).cross(c - a).try_normalize() else {
+                    continue;
+                };
+                if n.dot(centre - a) > 0.0 {
+                    n = -n;
+                }
+                // Out to the farthest hull vertex as rounded (the hull's
+                // vertices are mesh vertices).
+                let h = verts
+                    .iter()
+                    .fold(f32::NEG_INFINITY, |m, &p| m.max(n.dot(p)));
+                planes.push((n, h));
+            }
+        }
+        if planes.is_empty() {
+            // No hull (a flat or degenerate mesh): its box.
+            for k in 0..3 {
+                let e = Vec3::AXES[k];
+                planes.push((e, hi[k]));
+                planes.push((-e, -lo[k]));
+            }
+        }
+        let mut facing = vec![0u32; 6 * FACING_CELLS * FACING_CELLS];
+        for side in 0..6 {
+            for a in 0..FACING_CELLS {
+                for b in 0..FACING_CELLS {
+                    let w = |k: usize| (k as f32 + 0.5) / FACING_CELLS as f32 * 2.0 - 1.0;
+                    let sign = if side % 2 == 0 { 1.0 } else { -1.0 };
+                    let d = match side / 2 {
+                        0 => Vec3::new(sign, w(a), w(b)),
+                        1 => Vec3::new(w(a), sign, w(b)),
+                        _ => Vec3::new(w(a), w(b), sign),
+                    };
+                    let best = (0..planes.len())
+                        .max_by(|&x, &y| planes[x].0.dot(d).total_cmp(&planes[y].0.dot(d)))
+                        .unwrap_or(0);
+                    facing[facing_cell(d)] = best as u32;
+                }
+            }
+        }
+        Self {
+            planes,
+            centre,
+            facing,
+        }
+    }
+
+    /// Whether the triangle `t` reaches more than `tol` inside the hull:
+    /// clipped by every plane moved in by `tol`, something is left. The
+    /// plane facing the triangle is tried first.
+    fn holds_part_of(&self, t: &[Vec3; 3], tol: f32, buf: &mut [Vec<Vec3>; 2]) -> bool {
+        let first = self.facing[facing_cell((t[0] + t[1] + t[2]) / 3.0 - self.centre)];
+        let (n, h) = self.planes[first as usize];
+        if t.iter().all(|&x| n.dot(x) >= h - tol) {
+            return false;
+        }
+        let [poly, next] = buf;
+        poly.clear();
+        poly.extend_from_slice(t);
+        for &(n, h) in &self.planes {
+            let side = |x: Vec3| n.dot(x) - (h - tol);
+            if poly.iter().all(|&x| side(x) >= 0.0) {
+                return false;
+            }
+            if poly.iter().all(|&x| side(x) < 0.0) {
+                continue;
+            }
+            // Sutherland-Hodgman: keep the part inside this plane.
+            next.clear();
+            for e in 0..poly.len() {
+                let (a, b) = (poly[e], poly[(e + 1) % poly.len()]);
+                let (da, db) = (side(a), side(b));
+                if da < 0.0 {
+                    next.push(a);
+                }
+                if (da < 0.0) != (db < 0.0) {
+                    next.push(a + (b - a) * (da / (da - db)));
+                }
+            }
+            std::mem::swap(poly, next);
+            if poly.is_empty() {
+                return false;
+            }
+        }
+        true
+    }
+}
+
 /// Per mesh, what the tests need, made once on first use and shared by
 /// the threads.
 struct MeshCache<'s> {
     scene: &'s Scene,
     accel: &'s Accel,
-    closed: Vec<OnceLock<bool>>,
     /// Object-space box of each triangle.
     triangle_boxes: Vec<OnceLock<Vec<(Vec3, Vec3)>>>,
-    /// Object-space box of each run of [`TRIANGLE_RUN`] consecutive triangles.
-    triangle_runs: Vec<OnceLock<Vec<(Vec3, Vec3)>>>,
     sphere: Vec<OnceLock<BoundingSphere>>,
+    hull: Vec<OnceLock<Hull>>,
 }
-
-/// Triangles per box of [`MeshCache::triangle_runs`]: meshes list
-/// neighbouring triangles together (procedural ones by construction, OBJ
-/// exports mostly), so a run's box is small and a face far from most of
-/// an object skips most runs.
-const TRIANGLE_RUN: usize = 32;
 
 impl<'s> MeshCache<'s> {
     fn new(scene: &'s Scene, accel: &'s Accel) -> Self {
@@ -110,16 +243,19 @@ impl<'s> MeshCache<'s> {
         Self {
             scene,
             accel,
-            closed: (0..n).map(|_| OnceLock::new()).collect(),
             triangle_boxes: (0..n).map(|_| OnceLock::new()).collect(),
-            triangle_runs: (0..n).map(|_| OnceLock::new()).collect(),
             sphere: (0..n).map(|_| OnceLock::new()).collect(),
+            hull: (0..n).map(|_| OnceLock::new()).collect(),
         }
     }
 
     fn sphere(&self, mesh: usize) -> BoundingSphere {
         *self.sphere[mesh]
             .get_or_init(|| BoundingSphere::around(&self.scene.meshes[mesh].positions, 1e-3))
+    }
+
+    fn hull(&self, mesh: usize) -> &Hull {
+        self.hull[mesh].get_or_init(|| Hull::of(&self.scene.meshes[mesh].positions))
     }
 
     /// Whether the bounding spheres of instances `i` and `j` meet: unlike
@@ -143,7 +279,7 @@ impl<'s> MeshCache<'s> {
 
     /// The object-space triangles of `mesh` whose boxes overlap `region`
     /// (object space): one box test per triangle, no transform.
-    fn triangles_in(&self, mesh: usize, region: (Vec3, Vec3)) -> Vec<[Vec3; 3]> {
+    fn triangles_in(&self, mesh: usize, region: (Vec3, Vec3)) -> impl Iterator<Item = [Vec3; 3]> {
         let boxes = self.triangle_boxes[mesh].get_or_init(|| {
             (0..self.scene.meshes[mesh].triangles.len())
                 .map(|t| {
@@ -153,128 +289,9 @@ impl<'s> MeshCache<'s> {
                 .collect()
         });
         (0..boxes.len())
-            .filter(|&t| boxes_overlap(boxes[t], region))
-            .map(|t| self.triangle(mesh, t))
-            .collect()
+            .filter(move |&t| boxes_overlap(boxes[t], region))
+            .map(move |t| self.triangle(mesh, t))
     }
-
-    fn triangle_runs(&self, mesh: usize) -> &[(Vec3, Vec3)] {
-        self.triangle_runs[mesh].get_or_init(|| {
-            let n = self.scene.meshes[mesh].triangles.len();
-            (0..n)
-                .step_by(TRIANGLE_RUN)
-                .map(|start| {
-                    (start..(start + TRIANGLE_RUN).min(n)).fold(
-                        (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
-                        |(lo, hi), t| {
-                            let [a, b, c] = self.triangle(mesh, t);
-                            (lo.min(a).min(b).min(c), hi.max(a).max(b).max(c))
-                        },
-                    )
-                })
-                .collect()
-        })
-    }
-
-    /// Whether `mesh` is closed (it has an inside).
-    fn closed(&self, mesh: usize) -> bool {
-        *self.closed[mesh].get_or_init(|| nppp_scene::open_edge(&self.scene.meshes[mesh]).is_none())
-    }
-}
-
-/// A triangle with its unit normal, for the crossing tests.
-struct Face {
-    p: [Vec3; 3],
-    n: Vec3,
-}
-
-impl Face {
-    /// `None` for a triangle without area (nothing can cross it).
-    fn new(p: [Vec3; 3]) -> Option<Self> {
-        let n = (p[1] - p[0]).cross(p[2] - p[0]);
-        let len = n.length();
-        (len > 0.0 && len.is_finite()).then(|| Self { p, n: n / len })
-    }
-
-    /// Signed distance of `x` from the face's plane.
-    fn height(&self, x: Vec3) -> f32 {
-        self.n.dot(x - self.p[0])
-    }
-
-    /// Whether all of `points` lie more than `tol` on one side of the
-    /// plane: then no edge between them crosses the face.
-    fn clear_of(&self, points: &[Vec3; 3], tol: f32) -> bool {
-        let h = points.map(|x| self.height(x));
-        h.iter().all(|&v| v > tol) || h.iter().all(|&v| v < -tol)
-    }
-
-    /// Whether the segment from `a` to `b` crosses the face through its
-    /// inside: its ends lie on either side of the plane, each more than
-    /// `tol` from it, and it meets the plane more than `tol` inside the
-    /// face's edges. Grazing, ending on the face and touching its border
-    /// are contact, not crossing.
-    fn crossed_by(&self, a: Vec3, b: Vec3, tol: f32) -> bool {
-        let (da, db) = (self.height(a), self.height(b));
-        if !(da > tol && db < -tol || da < -tol && db > tol) {
-            return false;
-        }
-        let x = a + (b - a) * (da / (da - db));
-        let [p0, p1, p2] = self.p;
-        // Distance inside each edge, in the face's plane.
-        [(p0, p1), (p1, p2), (p2, p0)].iter().all(|&(u, v)| {
-            let inward = self.n.cross(v - u).normalize_or_zero();
-            inward.dot(x - u) > tol
-        })
-    }
-
-    /// Whether an edge of `other` crosses this face.
-    fn crossed_by_edges_of(&self, other: &[Vec3; 3], tol: f32) -> bool {
-        !self.clear_of(other, tol)
-            && [(0, 1), (1, 2), (2, 0)]
-                .iter()
-                .any(|&(u, v)| self.crossed_by(other[u], other[v], tol))
-    }
-}
-
-/// Whether the segment from `a` to `b` passes through the box (slab test).
-fn segment_meets_box(a: Vec3, b: Vec3, (lo, hi): (Vec3, Vec3)) -> bool {
-    let d = b - a;
-    let (mut t0, mut t1) = (0.0f32, 1.0f32);
-    for k in 0..3 {
-        if d[k] == 0.0 {
-            if a[k] < lo[k] || a[k] > hi[k] {
-                return false;
-            }
-        } else {
-            let (u, v) = ((lo[k] - a[k]) / d[k], (hi[k] - a[k]) / d[k]);
-            t0 = t0.max(u.min(v));
-            t1 = t1.min(u.max(v));
-        }
-    }
-    t0 <= t1
-}
-
-/// Whether `p` (object space) lies inside the closed mesh of `bvh`: the
-/// parity of the surface crossings along a fixed ray. The direction is
-/// off every axis and diagonal, so that it grazes no edge of a mesh built
-/// on a grid.
-fn inside_closed(bvh: &Blas, p: Vec3) -> bool {
-    let d = Vec3A::new(0.431_934, 0.679_485, 0.593_011).normalize();
-    let o = Vec3A::from(p);
-    let mut crossings = 0u32;
-    let mut t = 0.0f32;
-    // Each crossing moves on past the hit; a mesh with more crossings
-    // along one ray than this is not a sensible container.
-    for _ in 0..4096 {
-        match bvh.intersect(o, d, t, f32::INFINITY) {
-            Some(h) => {
-                crossings += 1;
-                t = h.t * (1.0 + 1e-6) + 1e-7;
-            }
-            None => break,
-        }
-    }
-    crossings % 2 == 1
 }
 
 /// The box around `region` (world space) in the object space of `x`.
@@ -285,8 +302,8 @@ fn box_to_object(x: &InstanceXform, region: (Vec3, Vec3)) -> (Vec3, Vec3) {
     (lo - pad, hi + pad)
 }
 
-/// Whether instance `j`'s geometry crosses instance `i`'s object's surface
-/// or lies inside it. Everything is tested in `i`'s object space.
+/// Whether instance `j`'s geometry reaches inside instance `i`'s object's
+/// convex hull. Everything is tested in `i`'s object space.
 fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
     let (scene, accel) = (cache.scene, cache.accel);
     let (xi, xj) = (&accel.instances[i], &accel.instances[j]);
@@ -294,63 +311,18 @@ fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
     let (bi, bj) = (accel.instance_bounds[i], accel.instance_bounds[j]);
     // A millionth of the object's size: closer than this is contact.
     let tol = cache.sphere(mi).radius * 1e-6;
-    // Only the triangles where the two boxes meet can cross.
-    let both = (bi.0.max(bj.0), bi.1.min(bj.1));
-    let tris_j: Vec<[Vec3; 3]> = cache
-        .triangles_in(mj, box_to_object(xj, both))
-        .into_iter()
-        .map(|t| t.map(|p| xi.point_to_object(xj.point_to_world(p))))
-        .collect();
-    if tris_j.is_empty() {
-        return false;
-    }
-    let runs = cache.triangle_runs(mi);
+    let hull = cache.hull(mi);
     // `i`'s own bounds, in its object space.
     let (lo, hi) = accel.blas[mi].bounds;
-    let bounds_i = (lo - Vec3::splat(tol), hi + Vec3::splat(tol));
-    // Each face of `j` against the edges of `i`'s triangles near it, and
-    // each face of `i` there against the edges of `j`'s: the runs of `i`'s
-    // triangles whose boxes meet the face's box.
-    let crossing = tris_j.iter().any(|tj| {
-        let Some(fj) = Face::new(*tj) else {
-            return false;
-        };
-        // The edges of `tj` that pass by the object at all (a floor's
-        // border never does).
-        let live: Vec<(Vec3, Vec3)> = [(tj[0], tj[1]), (tj[1], tj[2]), (tj[2], tj[0])]
-            .into_iter()
-            .filter(|&(a, b)| segment_meets_box(a, b, bounds_i))
-            .collect();
-        let reach = (
-            tj[0].min(tj[1]).min(tj[2]) - Vec3::splat(tol),
-            tj[0].max(tj[1]).max(tj[2]) + Vec3::splat(tol),
-        );
-        // A run whose box lies off the face's plane holds no triangle that
-        // crosses the face (a floor under an object: only the runs at its
-        // bottom are tested).
-        let meets_plane = |(lo, hi): (Vec3, Vec3)| {
-            let centre = fj.height((lo + hi) * 0.5);
-            centre.abs() <= fj.n.abs().dot((hi - lo) * 0.5) + tol
-        };
-        let n = scene.meshes[mi].triangles.len();
-        runs.iter().enumerate().any(|(r, &run)| {
-            boxes_overlap(run, reach)
-                && meets_plane(run)
-                && (r * TRIANGLE_RUN..((r + 1) * TRIANGLE_RUN).min(n)).any(|t| {
-                    let ti = cache.triangle(mi, t);
-                    fj.crossed_by_edges_of(&ti, tol)
-                        || !live.is_empty()
-                            && Face::new(ti).is_some_and(|fi| {
-                                !fi.clear_of(tj, tol)
-                                    && live.iter().any(|&(a, b)| fi.crossed_by(a, b, tol))
-                            })
-                })
-        })
-    });
-    // No surfaces cross: each connected part of `j` there lies inside the
-    // object whole, or outside it. A vertex per triangle decides (a part
-    // has no vertex outside the region of its own triangles).
-    crossing || cache.closed(mi) && tris_j.iter().any(|t| inside_closed(&accel.blas[mi], t[0]))
+    let bounds_i = (lo + Vec3::splat(tol), hi - Vec3::splat(tol));
+    let mut buf = [Vec::new(), Vec::new()];
+    // Only `j`'s triangles where the two boxes meet can reach in.
+    let both = (bi.0.max(bj.0), bi.1.min(bj.1));
+    cache.triangles_in(mj, box_to_object(xj, both)).any(|t| {
+        let t = t.map(|p| xi.point_to_object(xj.point_to_world(p)));
+        let tbox = (t[0].min(t[1]).min(t[2]), t[0].max(t[1]).max(t[2]));
+        boxes_overlap(tbox, bounds_i) && hull.holds_part_of(&t, tol, &mut buf)
+    })
 }
 
 /// Leaves the estimators of the `obstructed` instances unused: they are
@@ -366,8 +338,8 @@ pub fn release(ests: &mut Estimators, obstructed: &[Obstruction]) {
     ests.set_per_instance(per_instance);
 }
 
-/// Every instance that uses an estimator for a see-through object another
-/// instance crosses or lies inside (see the module's doc), with the first
+/// Every instance that uses an estimator whose object's convex hull holds
+/// geometry of another instance (see the module's doc), with the first
 /// such other instance. Instances are tested against those whose world
 /// boxes overlap theirs, so a scene of many separate objects costs little.
 pub fn find_obstructed(scene: &Scene, accel: &Accel, ests: &Estimators) -> Vec<Obstruction> {
@@ -376,7 +348,7 @@ pub fn find_obstructed(scene: &Scene, accel: &Accel, ests: &Estimators) -> Vec<O
     // In parallel: 2,025 glass knots on a floor test each against it.
     (0..scene.instances.len())
         .into_par_iter()
-        .filter(|&i| ests.per_instance()[i].is_some_and(|e| ests.list[e as usize].walks_inside()))
+        .filter(|&i| ests.per_instance()[i].is_some())
         .filter_map(|i| {
             let bi = accel.instance_bounds[i];
             (0..scene.instances.len())

@@ -1,5 +1,5 @@
-//! Other geometry inside an estimator's see-through object: the instance is
-//! traced for real (`nppp_render::estimator_overlap`).
+//! Other geometry within an estimator's object (its convex hull): the
+//! instance is traced for real (`nppp_render::estimator_overlap`).
 
 mod common;
 
@@ -131,10 +131,37 @@ fn geometry_beside_under_or_around_an_object_keeps_its_estimator() {
     let holder = r#"{"box": {"min": [-2, -2, -2], "max": [2, 2, 2]}}"#;
     assert_eq!(obstructed(&scene(BALL, JADE, holder, glass)), []);
     assert_eq!(obstructed(&scene(BALL, glass, holder, WHITE)), []);
-    // An opaque object's walk stays outside it: a lamp inside it changes
-    // nothing the estimator answers.
+}
+
+#[test]
+fn geometry_between_the_parts_of_an_object_releases_its_estimator() {
+    // A knot's walks cross its hole from strand to strand, opaque or not:
+    // an oracle with a lamp in a glass knot's hole rendered 26% dark, a
+    // gold knot's 38%, and a plain ball there 0.4-1% (an independent
+    // check against Mitsuba 3). A Menger sponge of level 1 has a tunnel
+    // through its middle: a ball in it (clear of every face) is within
+    // the sponge's hull.
+    let sponge = r#"{"procedural": {"type": "menger_sponge", "level": 1}}"#;
+    let ball = r#"{"icosphere": {"center": [0, 0, 0], "radius": 0.05, "subdivisions": 2}}"#;
+    let gold = r#"{"type": "conductor", "reflectance": [1, 0.8, 0.4], "roughness": 0.2}"#;
+    for material in [WHITE, gold, JADE] {
+        assert_eq!(
+            obstructed(&scene(sponge, material, ball, LAMP)),
+            [Obstruction {
+                instance: 0,
+                other: 1
+            }],
+            "{material}"
+        );
+    }
+    // Beside the sponge, clear of its hull, it is kept.
+    let beside = r#"{"icosphere": {"center": [0.8, 0, 0], "radius": 0.05, "subdivisions": 2}}"#;
+    assert_eq!(obstructed(&scene(sponge, WHITE, beside, LAMP)), []);
+    // Geometry hidden inside an opaque object changes none of its walks,
+    // but the hull cannot tell it from geometry in a hole: it is traced
+    // for real too (the same image).
     let inside = r#"{"box": {"min": [-0.2, -0.2, -0.2], "max": [0.2, 0.2, 0.2]}}"#;
-    assert_eq!(obstructed(&scene(BALL, WHITE, inside, LAMP)), []);
+    assert_eq!(obstructed(&scene(BALL, WHITE, inside, LAMP)).len(), 1);
 }
 
 #[test]
