@@ -1974,7 +1974,7 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
     .unwrap();
     for mode in ["off", "oracle"] {
         let part = dir.join(format!("{mode}.nppr"));
-        let o = nppp(&[
+        let o = nppp([
             "render".as_ref(),
             scene.as_os_str(),
             "--quiet".as_ref(),
@@ -1989,7 +1989,7 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
         assert!(part.exists());
     }
     // Neural reads the file, and says which scene and key.
-    let o = nppp(&[
+    let o = nppp([
         "render".as_ref(),
         scene.as_os_str(),
         "--quiet".as_ref(),
@@ -2011,7 +2011,7 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
         b.join("x.json").display()
     );
     let out = dir.join("bench-out");
-    let o = nppp(&[
+    let o = nppp([
         "bench".as_ref(),
         "--scenes".as_ref(),
         scenes.as_ref(),
@@ -2045,7 +2045,7 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
                 .replace(r#", "estimator": "missing.nppp""#, ""),
         )
         .unwrap();
-        let o = nppp(&[
+        let o = nppp([
             "render".as_ref(),
             s.as_os_str(),
             "--quiet".as_ref(),
