@@ -103,14 +103,6 @@ impl Estimator {
         self.surface.light_sampled_bsdf().is_some()
     }
 
-    /// Whether paths walk inside its object (glass, a translucent medium):
-    /// other geometry there would meet walks the estimator never saw
-    /// (`crate::estimator_overlap`).
-    pub fn walks_inside(&self) -> bool {
-        self.medium.is_some()
-            || matches!(self.surface, SurfaceKind::Scatter(Bsdf::Dielectric { .. }))
-    }
-
     /// Whether it is a neural estimator whose file has a vertex head (it
     /// returns a picked vertex for `EntryNee::PickedVertex`).
     pub fn has_vertex_head(&self) -> bool {

@@ -13,11 +13,13 @@
 //! instance is traced for real instead: [`find_obstructed`] names it and
 //! the first other instance found in its way, and the renderer says so.
 //!
-//! The hull is the mesh's exact convex hull (the `quickhull` crate), as
-//! planes moved out to hold every vertex in 32-bit floats. A triangle of
-//! the other instance meets it where clipping the triangle by every plane
-//! leaves something. Touching is not meeting: the planes are moved in by a
-//! millionth of the object's size first, so a knot resting on a floor, or
+//! The hull is the mesh's convex hull from the `quickhull` crate (which
+//! may leave out vertices within about 1e-5 of the object's size of it),
+//! within the mesh's box; a flat mesh has its box alone. A triangle of the
+//! other instance meets it where clipping the triangle by every plane
+//! leaves something. Touching is not meeting: the planes are moved in by
+//! 1e-4 of the object's size first (well above the rounding of a rotated
+//! floor mapped into the object's space), so a knot resting on a floor, or
 //! a glass box standing exactly on one, keeps its estimator whatever the
 //! floor's triangulation. Geometry around the hull (a room, a glass case,
 //! a floor below the object that cuts its bounding sphere) is left to the
@@ -85,10 +87,11 @@ fn boxes_overlap(a: (Vec3, Vec3), b: (Vec3, Vec3)) -> bool {
     a.0.cmple(b.1).all() && b.0.cmple(a.1).all()
 }
 
-/// A mesh's convex hull (object space): the points `x` with
-/// `n.dot(x) <= h` for every plane `(n, h)`.
+/// A mesh's convex hull (object space, relative to `centre`): the points
+/// `x` with `n.dot(x - centre) <= h` for every plane `(n, h)`.
 struct Hull {
     planes: Vec<(Vec3, f32)>,
+    /// The centre of the mesh's box.
     centre: Vec3,
     /// For directions from `centre` (a cube map of [`FACING_CELLS`]^2 cells
     /// per side), the plane facing that way most: the one a triangle that
@@ -122,42 +125,42 @@ impl Hull {
             (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
             |(lo, hi), &p| (lo.min(p), hi.max(p)),
         );
+        let centre = (lo + hi) * 0.5;
+        // Relative to the box's centre: an OBJ need not be centred, and the
+        // planes' offsets keep their precision.
         let points: Vec<glam_quickhull::Vec3A> = positions
             .iter()
-            .map(|p| glam_quickhull::Vec3A::from_array(p.to_array()))
+            .map(|&p| glam_quickhull::Vec3A::from_array((p - centre).to_array()))
             .collect();
-        let hull = quickhull::ConvexTriangleMesh::try_from_points(&points, None).ok();
+        // Only a hull with volume: quickhull returns a flat point set as a
+        // two-sided fan, whose planes have no inside.
+        let hull = quickhull::ConvexTriangleMesh::try_from_points(&points, None)
+            .ok()
+            .filter(|h| h.volume() > 1e-9 * (hi - lo).max_element().powi(3));
+        // The box's six planes always: the hull within them.
         let mut planes = Vec::new();
-        let mut centre = (lo + hi) * 0.5;
-        if let Some(hull) = hull.filter(|h| h.indices().len() >= 4) {
+        for k in 0..3 {
+            let e = Vec3::AXES[k];
+            planes.push((e, hi[k] - centre[k]));
+            planes.push((-e, centre[k] - lo[k]));
+        }
+        if let Some(hull) = hull {
             let verts: Vec<Vec3> = hull
                 .vertices()
                 .iter()
                 .map(|v| Vec3::from_array(v.to_array()))
                 .collect();
-            centre = verts.iter().copied().sum::<Vec3>() / verts.len() as f32;
+            let inner = verts.iter().copied().sum::<Vec3>() / verts.len() as f32;
             for tri in hull.indices() {
                 let [a, b, c] = tri.map(|k| verts[k as usize]);
                 let Some(mut n) = (b - a).cross(c - a).try_normalize() else {
                     continue;
                 };
-                if n.dot(centre - a) > 0.0 {
+                if n.dot(inner - a) > 0.0 {
                     n = -n;
                 }
-                // Out to the farthest hull vertex as rounded (the hull's
-                // vertices are mesh vertices).
-                let h = verts
-                    .iter()
-                    .fold(f32::NEG_INFINITY, |m, &p| m.max(n.dot(p)));
-                planes.push((n, h));
-            }
-        }
-        if planes.is_empty() {
-            // No hull (a flat or degenerate mesh): its box.
-            for k in 0..3 {
-                let e = Vec3::AXES[k];
-                planes.push((e, hi[k]));
-                planes.push((-e, -lo[k]));
+                // Through the face's farthest corner as rounded.
+                planes.push((n, n.dot(a).max(n.dot(b)).max(n.dot(c))));
             }
         }
         let mut facing = vec![0u32; 6 * FACING_CELLS * FACING_CELLS];
@@ -189,14 +192,23 @@ impl Hull {
     /// clipped by every plane moved in by `tol`, something is left. The
     /// plane facing the triangle is tried first.
     fn holds_part_of(&self, t: &[Vec3; 3], tol: f32, buf: &mut [Vec<Vec3>; 2]) -> bool {
-        let first = self.facing[facing_cell((t[0] + t[1] + t[2]) / 3.0 - self.centre)];
+        let t = t.map(|x| x - self.centre);
+        let first = self.facing[facing_cell((t[0] + t[1] + t[2]) / 3.0)];
         let (n, h) = self.planes[first as usize];
         if t.iter().all(|&x| n.dot(x) >= h - tol) {
             return false;
         }
+        // A plane with the whole triangle outside: no clipping needed.
+        if self
+            .planes
+            .iter()
+            .any(|&(n, h)| t.iter().all(|&x| n.dot(x) >= h - tol))
+        {
+            return false;
+        }
         let [poly, next] = buf;
         poly.clear();
-        poly.extend_from_slice(t);
+        poly.extend_from_slice(&t);
         for &(n, h) in &self.planes {
             let side = |x: Vec3| n.dot(x) - (h - tol);
             if poly.iter().all(|&x| side(x) >= 0.0) {
@@ -309,9 +321,11 @@ fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
     let (xi, xj) = (&accel.instances[i], &accel.instances[j]);
     let (mi, mj) = (scene.instances[i].mesh, scene.instances[j].mesh);
     let (bi, bj) = (accel.instance_bounds[i], accel.instance_bounds[j]);
-    // A millionth of the object's size: closer than this is contact.
-    let tol = cache.sphere(mi).radius * 1e-6;
-    let hull = cache.hull(mi);
+    // Closer than 1e-4 of the object's size is contact: above the rounding
+    // of a rotated floor's triangle mapped into the object's space (about
+    // 5e-5 of a knot's size 300 units from the origin), far below anything
+    // a walk could notice.
+    let tol = cache.sphere(mi).radius * 1e-4;
     // `i`'s own bounds, in its object space.
     let (lo, hi) = accel.blas[mi].bounds;
     let bounds_i = (lo + Vec3::splat(tol), hi - Vec3::splat(tol));
@@ -321,7 +335,7 @@ fn obstructs(cache: &MeshCache, i: usize, j: usize) -> bool {
     cache.triangles_in(mj, box_to_object(xj, both)).any(|t| {
         let t = t.map(|p| xi.point_to_object(xj.point_to_world(p)));
         let tbox = (t[0].min(t[1]).min(t[2]), t[0].max(t[1]).max(t[2]));
-        boxes_overlap(tbox, bounds_i) && hull.holds_part_of(&t, tol, &mut buf)
+        boxes_overlap(tbox, bounds_i) && cache.hull(mi).holds_part_of(&t, tol, &mut buf)
     })
 }
 

@@ -1,8 +1,8 @@
 //! The path tracer: two-level BVH, materials, lights, camera, the wavefront
 //! integrator (diffuse bounces shaded eight paths at a time in SIMD lanes), estimator integration (queries, batched answers, next-event
 //! estimation through an estimator, the `auto` pilot, and which instances
-//! may not use theirs: other geometry crossing or inside a see-through
-//! object), homogeneous media
+//! may not use theirs: other geometry inside the object's convex hull),
+//! homogeneous media
 //! inside translucent objects, object walks
 //! (training data and the oracle), the exact film and render parts (a render
 //! split by sample range over machines, merged bit for bit), error metrics,

@@ -55,10 +55,12 @@ pub struct MediumVisit {
 /// skipped. Without it a dense medium rendered dark (a skin of 2e-5 times
 /// the distance from the origin where nothing scattered: 0.8% at a mean
 /// free path of 0.011 at x = 278, 3% at 0.0011), and darker the farther
-/// from the origin it stood. Capped at 16 offsets for grazing rays.
+/// from the origin it stood. Capped at two offsets: for a grazing ray the
+/// stretch runs along the surface, and a scattering point there could fall
+/// outside a thin part of the object.
 #[inline]
 pub fn skin_behind(eps: f32, wi: Vec3, ng: Vec3) -> f32 {
-    eps / wi.dot(ng).abs().max(1.0 / 16.0)
+    eps / wi.dot(ng).abs().max(0.5)
 }
 
 impl PathState {

@@ -51,8 +51,8 @@ pub struct RenderScene {
     /// them (`render::render` checks).
     pub estimators: Option<crate::estimator::Estimators>,
     /// Instances whose estimator [`RenderScene::with_estimators`] left
-    /// unused because other geometry crosses their see-through
-    /// object or lies inside it (see [`crate::estimator_overlap`]): they are
+    /// unused because other geometry reaches into their object's convex
+    /// hull (see [`crate::estimator_overlap`]): they are
     /// traced for real, and the renderer says so.
     pub obstructed: Vec<crate::estimator_overlap::Obstruction>,
 }
@@ -81,8 +81,8 @@ impl RenderScene {
         Ok(rs)
     }
 
-    /// Leaves unused the estimators of instances whose see-through object
-    /// other geometry crosses or fills (see
+    /// Leaves unused the estimators of instances whose object's convex hull
+    /// other geometry reaches into (see
     /// [`crate::estimator_overlap`]): those instances are traced for real.
     /// Returns them, for the caller to say so. `self` must be the
     /// estimator layout of `scene`.

@@ -116,10 +116,17 @@ fn geometry_beside_under_or_around_an_object_keeps_its_estimator() {
     // (which grazes the box's bottom face) and off it: contact, not
     // crossing.
     let unit_box = r#"{"box": {"min": [-0.5, 0, -0.5], "max": [0.5, 1, 0.5]}}"#;
-    let ground = r#"{"quad": [[-50, 0, -50], [-50, 0, 50], [50, 0, 50], [50, 0, -50]]}"#;
+    let ground = r#"{"quad": [[-500, 0, -500], [-500, 0, 500], [500, 0, 500], [500, 0, -500]]}"#;
     let glass = r#"{"type": "dielectric", "ior": 1.5}"#;
-    for at in ["[5, 0, 5]", "[5, 0, -5]", "[0, 0, 0]"] {
-        let t = format!(r#"{{"translate": {at}}}"#);
+    for (at, turn) in [
+        ("[5, 0, 5]", 0),
+        ("[5, 0, -5]", 0),
+        ("[0, 0, 0]", 0),
+        // Turned and far from the origin: the floor's triangles, mapped
+        // into the box's space, are off by rounding.
+        ("[300, 0, 280]", 37),
+    ] {
+        let t = format!(r#"{{"rotate": {{"axis": [0, 1, 0], "deg": {turn}}}, "translate": {at}}}"#);
         assert_eq!(
             obstructed(&placed(unit_box, glass, &t, ground, WHITE)),
             [],

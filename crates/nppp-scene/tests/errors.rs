@@ -1418,6 +1418,15 @@ fn sizes_beyond_32_bit_float_geometry() {
         "instances[2].transform",
         "steps of a 32-bit float there",
     );
+    // A mesh is intersected in its own units: those count too.
+    expect_error(
+        |v| {
+            v["meshes"]["block"]["box"] = json!({"min": [0, 0, 0], "max": [3e12, 3e12, 3e12]});
+            v["instances"][1]["transform"] = json!({"scale": 1e-10});
+        },
+        "meshes.block",
+        "in its own units",
+    );
     // The same ball 1,000 times larger is fine there.
     let mut ok = base();
     ok["instances"][2]["transform"] = json!({"scale": 0.1, "translate": [300, 0, 0]});

@@ -264,7 +264,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     let mut skipped = Vec::new();
     let ps: Vec<u32> = NPPP_P.iter().copied().filter(|&p| p < m).collect();
     let mut neural: Option<Estimators> = None;
-    // The instances whose see-through object other geometry obstructs,
+    // The instances whose object's hull other geometry reaches into,
     // once found and named (both kinds of estimators bind the same ones).
     let mut obstructed: Option<Vec<Obstruction>> = None;
     if estimator_files.is_empty() {

@@ -335,48 +335,57 @@ fn build_params() -> BvhBuildParams {
 const TIED_GROUP_MIN: usize = 3;
 
 /// Widens the boxes of every group of more than two identical boxes, each
-/// by its own pseudo-random amount, so that obvhs' PLOC builder sees
-/// different merge costs. PLOC merges mutual nearest neighbours, and among
-/// n equal costs it finds one mutual pair per pass: n passes over n nodes.
-/// A mesh shrunk until its vertices round together (a knot scaled by 1e-4
-/// at x = 278 never finished building) or thousands of instances placed at
-/// one spot took quadratic time. Widened boxes still contain their
-/// primitives, so traversal stays exact; boxes with no twin (every
+/// side of each box by its own pseudo-random amount, so that obvhs' PLOC
+/// builder sees different merge costs. PLOC merges mutual nearest
+/// neighbours, and among n equal costs it finds one mutual pair per pass:
+/// n passes over n nodes. A mesh shrunk until its vertices round together
+/// (a knot scaled by 1e-4 at x = 278 never finished building) or thousands
+/// of instances placed at one spot took quadratic time. Each side moves by
+/// its own amount, so the widened boxes do not nest (nested boxes would
+/// merge into a chain as deep as the group). Widened boxes still contain
+/// their primitives, so traversal stays exact; boxes with no twin (every
 /// committed scene's, bar the pairs) are left as they are, bit for bit.
 fn break_box_ties(aabbs: &mut [Aabb]) {
-    use std::collections::HashMap;
     let key = |b: &Aabb| {
         let (lo, hi) = (b.min.to_array(), b.max.to_array());
         [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]].map(f32::to_bits)
     };
-    let mut groups: HashMap<[u32; 6], usize> = HashMap::new();
-    for b in aabbs.iter() {
-        *groups.entry(key(b)).or_default() += 1;
-    }
-    if groups.values().all(|&n| n < TIED_GROUP_MIN) {
-        return;
-    }
-    for (i, b) in aabbs.iter_mut().enumerate() {
-        let n = groups[&key(b)];
-        if n < TIED_GROUP_MIN {
-            continue;
+    // Group sizes by sorting the keys (no hashing of every triangle).
+    let mut keys: Vec<([u32; 6], u32)> = aabbs
+        .iter()
+        .enumerate()
+        .map(|(i, b)| (key(b), i as u32))
+        .collect();
+    keys.sort_unstable();
+    let mut start = 0;
+    while start < keys.len() {
+        let mut end = start + 1;
+        while end < keys.len() && keys[end].0 == keys[start].0 {
+            end += 1;
         }
-        // Steps of at least a few ulps of the box's farthest coordinate (a
-        // smaller widening would round away) or 1/4096 of its size; up to
-        // as many steps as the group has boxes (capped), picked by a hash
-        // of the index (SplitMix64's finalizer).
-        let reach = b.min.abs().max(b.max.abs()).max_element();
-        let ulp = f32::from_bits(reach.to_bits() & 0x7f80_0000) * f32::EPSILON;
-        let step = (4.0 * ulp)
-            .max((b.max - b.min).max_element() / 4096.0)
-            .max(f32::MIN_POSITIVE);
-        let mut h = (i as u64).wrapping_add(0x9e37_79b9_7f4a_7c15);
-        h = (h ^ (h >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        h = (h ^ (h >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        h ^= h >> 31;
-        let steps = 1 + h % n.min(1 << 16) as u64;
-        let pad = Vec3A::splat(step * steps as f32);
-        *b = Aabb::new(b.min - pad, b.max + pad);
+        if end - start >= TIED_GROUP_MIN {
+            for &(_, i) in &keys[start..end] {
+                let b = &mut aabbs[i as usize];
+                // Steps of at least a few ulps of the box's farthest
+                // coordinate (a smaller widening would round away) or
+                // 1/4096 of its size; 1 to 256 of them per side, from a
+                // hash of the index (SplitMix64's finalizer).
+                let reach = b.min.abs().max(b.max.abs()).max_element();
+                let ulp = f32::from_bits(reach.to_bits() & 0x7f80_0000) * f32::EPSILON;
+                let step = (4.0 * ulp)
+                    .max((b.max - b.min).max_element() / 4096.0)
+                    .max(f32::MIN_POSITIVE);
+                let mut h = u64::from(i).wrapping_add(0x9e37_79b9_7f4a_7c15);
+                h = (h ^ (h >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+                h = (h ^ (h >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+                h ^= h >> 31;
+                let side = |k: u32| step * (1 + ((h >> (8 * k)) & 0xff)) as f32;
+                let lo = Vec3A::new(side(0), side(1), side(2));
+                let hi = Vec3A::new(side(3), side(4), side(5));
+                *b = Aabb::new(b.min - lo, b.max + hi);
+            }
+        }
+        start = end;
     }
 }
 
