@@ -500,26 +500,6 @@ impl Cx<'_> {
                 Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
             })
             .collect();
-        // The meshes in their own units too: the renderer intersects each
-        // in its object space (and `gen` walks it there).
-        for (m, b) in bounds.iter().enumerate() {
-            let Some((lo, hi)) = *b else { continue };
-            if !instances.iter().any(|inst| inst.mesh == m) {
-                continue;
-            }
-            let far = lo.abs().max(hi.abs()).max_element();
-            let why = if far > MAX_WORLD_COORD {
-                Some(format!(
-                    "reaches {far:.3e} from the origin in its own units, beyond {MAX_WORLD_COORD:e} \
-                     (32-bit float geometry); scale the mesh down and its instances up"
-                ))
-            } else {
-                precision_problem(lo, hi, None).map(|w| format!("in its own units {w}"))
-            };
-            if let Some(why) = why {
-                return Err(self.invalid(&join_key("meshes", &mesh_names[m]), why));
-            }
-        }
         for (i, inst) in instances.iter().enumerate() {
             let Some((lo, hi)) = bounds[inst.mesh] else {
                 continue;
@@ -564,6 +544,26 @@ impl Cx<'_> {
                         }
                     ),
                 ));
+            }
+        }
+        // The meshes in their own units too: the renderer intersects each
+        // in its object space (and `gen` walks it there).
+        for (m, b) in bounds.iter().enumerate() {
+            let Some((lo, hi)) = *b else { continue };
+            if !instances.iter().any(|inst| inst.mesh == m) {
+                continue;
+            }
+            let far = lo.abs().max(hi.abs()).max_element();
+            let why = if far > MAX_WORLD_COORD {
+                Some(format!(
+                    "reaches {far:.3e} from the origin in its own units, beyond {MAX_WORLD_COORD:e} \
+                     (32-bit float geometry); scale the mesh down and its instances up"
+                ))
+            } else {
+                precision_problem(lo, hi, None).map(|w| format!("in its own units {w}"))
+            };
+            if let Some(why) = why {
+                return Err(self.invalid(&join_key("meshes", &mesh_names[m]), why));
             }
         }
         Ok(())
