@@ -439,15 +439,8 @@ fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
     }
     // The scene loader's size rules, in the mesh's own coordinates (gen
     // traces the object there).
-    if let Some((lo, hi)) = mesh_bounds(&mesh) {
-        let free_path = match material {
-            Material::Translucent {
-                sigma_s, sigma_a, ..
-            } => Some(f64::from((sigma_s + sigma_a).max_element()))
-                .filter(|&s| s > 0.0)
-                .map(|s| 1.0 / s),
-            _ => None,
-        };
+    if let Some((lo, hi)) = mesh.bounds() {
+        let free_path = material.densest_sigma_t().map(|s| 1.0 / s);
         let far = lo.abs().max(hi.abs()).max_element();
         ensure!(
             far <= nppp_scene::MAX_WORLD_COORD,
@@ -460,13 +453,6 @@ fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
         }
     }
     Ok(GenObject::new(&mesh_name, &mesh, &material_name, material)?)
-}
-
-/// The mesh's bounding box, in f64.
-fn mesh_bounds(mesh: &Mesh) -> Option<(glam::DVec3, glam::DVec3)> {
-    let mut it = mesh.positions.iter().map(|p| p.as_dvec3());
-    let first = it.next()?;
-    Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
 }
 
 /// `builtin` and `procedural:TYPE`: the project's standard objects.

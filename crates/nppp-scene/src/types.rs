@@ -100,6 +100,28 @@ pub struct Mesh {
     pub shading_normals: Option<Vec<[Vec3; 3]>>,
 }
 
+impl Mesh {
+    /// The box around the vertices, in f64 (`None` without vertices).
+    pub fn bounds(&self) -> Option<(glam::DVec3, glam::DVec3)> {
+        let mut it = self.positions.iter().map(|p| p.as_dvec3());
+        let first = it.next()?;
+        Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
+    }
+}
+
+impl Material {
+    /// A translucent material's densest channel, sigma_s + sigma_a per unit
+    /// length in mesh units (`None` for other materials and a vacuum).
+    pub fn densest_sigma_t(&self) -> Option<f64> {
+        match self {
+            Material::Translucent {
+                sigma_s, sigma_a, ..
+            } => Some(f64::from((*sigma_s + *sigma_a).max_element())).filter(|&s| s > 0.0),
+            _ => None,
+        }
+    }
+}
+
 /// Scale (uniform), then rotate, then translate.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Transform {

@@ -472,16 +472,6 @@ impl Cx<'_> {
         material_names: &[String],
         instances: &[Instance],
     ) -> Res<()> {
-        // Each translucent material's densest channel (mesh units).
-        let materials_sigma_t: Vec<Option<f64>> = materials
-            .iter()
-            .map(|m| match m {
-                Material::Translucent {
-                    sigma_s, sigma_a, ..
-                } => Some(f64::from((*sigma_s + *sigma_a).max_element())).filter(|&s| s > 0.0),
-                _ => None,
-            })
-            .collect();
         let too_far = |v: DVec3| !v.is_finite() || v.abs().max_element() > MAX_WORLD_COORD;
         if too_far(camera.position.as_dvec3()) {
             return Err(self.invalid(
@@ -492,14 +482,7 @@ impl Cx<'_> {
                 ),
             ));
         }
-        let bounds: Vec<Option<(DVec3, DVec3)>> = meshes
-            .iter()
-            .map(|m| {
-                let mut it = m.positions.iter().map(|p| p.as_dvec3());
-                let first = it.next()?;
-                Some(it.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
-            })
-            .collect();
+        let bounds: Vec<Option<(DVec3, DVec3)>> = meshes.iter().map(Mesh::bounds).collect();
         for (i, inst) in instances.iter().enumerate() {
             let Some((lo, hi)) = bounds[inst.mesh] else {
                 continue;
@@ -530,7 +513,7 @@ impl Cx<'_> {
                     ),
                 ));
             }
-            let sigma_t = materials_sigma_t.get(inst.material).copied().flatten();
+            let sigma_t = materials[inst.material].densest_sigma_t();
             if let Some(why) = precision_problem(wlo, whi, sigma_t.map(|s| t.scale as f64 / s)) {
                 return Err(self.invalid(
                     &format!("instances[{i}].transform"),
