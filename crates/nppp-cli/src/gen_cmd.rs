@@ -437,20 +437,11 @@ fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
              {edge}; a medium needs a watertight, consistently oriented boundary"
         );
     }
-    // The scene loader's size rules, in the mesh's own coordinates (gen
-    // traces the object there).
-    if let Some((lo, hi)) = mesh.bounds() {
-        let free_path = material.densest_sigma_t().map(|s| 1.0 / s);
-        let far = lo.abs().max(hi.abs()).max_element();
-        ensure!(
-            far <= nppp_scene::MAX_WORLD_COORD,
-            "--mesh {mesh_arg}: reaches {far:.3e} from the origin, beyond {:e} (32-bit float \
-             geometry); scale it down",
-            nppp_scene::MAX_WORLD_COORD
-        );
-        if let Some(why) = nppp_scene::precision_problem(lo, hi, free_path) {
-            bail!("--mesh {mesh_arg}: {why}");
-        }
+    // The scene loader's size rules, in the mesh's own units (gen walks
+    // the object there).
+    let free_path = material.densest_sigma_t().map(|s| 1.0 / s);
+    if let Some(why) = nppp_scene::mesh_units_problem(&mesh, free_path) {
+        bail!("--mesh {mesh_arg}: {why}");
     }
     Ok(GenObject::new(&mesh_name, &mesh, &material_name, material)?)
 }

@@ -17,6 +17,14 @@ pub use glam::{Vec2, Vec3};
 pub use rng::SampleRng;
 pub use sphere_pair::{BoundingSphere, SpherePair};
 
+/// One step between 32-bit floats near `x`: the spacing at the power of
+/// two at or below `|x|` (0 for 0). What a coordinate of that size can
+/// resolve: the scene loader's size rules and the BVH builder's tie
+/// breaking measure in it.
+pub fn float_step(x: f32) -> f32 {
+    f32::from_bits(x.abs().to_bits() & 0x7f80_0000) * f32::EPSILON
+}
+
 /// A ray with an origin and a unit direction.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Ray {

@@ -371,8 +371,7 @@ fn break_box_ties(aabbs: &mut [Aabb]) {
                 // 1/4096 of its size; 1 to 256 of them per side, from a
                 // hash of the index (SplitMix64's finalizer).
                 let reach = b.min.abs().max(b.max.abs()).max_element();
-                let ulp = f32::from_bits(reach.to_bits() & 0x7f80_0000) * f32::EPSILON;
-                let step = (4.0 * ulp)
+                let step = (4.0 * nppp_geom::float_step(reach))
                     .max((b.max - b.min).max_element() / 4096.0)
                     .max(f32::MIN_POSITIVE);
                 let mut h = u64::from(i).wrapping_add(0x9e37_79b9_7f4a_7c15);

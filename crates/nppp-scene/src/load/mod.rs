@@ -47,9 +47,8 @@ pub fn precision_problem(lo: DVec3, hi: DVec3, free_path: Option<f64>) -> Option
     if !(size.is_finite() && reach.is_finite()) {
         return None;
     }
-    // One float step (ulp) of the farthest coordinate, in f32.
-    let r = (reach as f32).max(f32::MIN_POSITIVE);
-    let step = f64::from(f32::from_bits(r.to_bits() & 0x7f80_0000) * f32::EPSILON);
+    // One float step of the farthest coordinate, in f32.
+    let step = f64::from(nppp_geom::float_step((reach as f32).max(f32::MIN_POSITIVE)));
     if size > 0.0 && size < MIN_WORLD_SIZE {
         return Some(format!(
             "is {size:.3e} across, below {MIN_WORLD_SIZE:e} (32-bit float intersection tests \
@@ -72,6 +71,22 @@ pub fn precision_problem(lo: DVec3, hi: DVec3, free_path: Option<f64>) -> Option
         )),
         _ => None,
     }
+}
+
+/// What makes `mesh` unfit for 32-bit float geometry in its own units,
+/// where the renderer intersects it and `nppp gen` walks it: beyond
+/// [`MAX_WORLD_COORD`], or a [`precision_problem`] (with a medium's mean
+/// free path `free_path` in mesh units, where one applies).
+pub fn mesh_units_problem(mesh: &Mesh, free_path: Option<f64>) -> Option<String> {
+    let (lo, hi) = mesh.bounds()?;
+    let far = lo.abs().max(hi.abs()).max_element();
+    if far > MAX_WORLD_COORD {
+        return Some(format!(
+            "reaches {far:.3e} from the origin in its own units, beyond {MAX_WORLD_COORD:e} \
+             (32-bit float geometry); scale the mesh down and its instances up"
+        ));
+    }
+    precision_problem(lo, hi, free_path).map(|w| format!("in its own units {w}"))
 }
 
 /// Reads and validates a scene file. Relative OBJ and estimator paths are
@@ -531,21 +546,11 @@ impl Cx<'_> {
         }
         // The meshes in their own units too: the renderer intersects each
         // in its object space (and `gen` walks it there).
-        for (m, b) in bounds.iter().enumerate() {
-            let Some((lo, hi)) = *b else { continue };
+        for (m, mesh) in meshes.iter().enumerate() {
             if !instances.iter().any(|inst| inst.mesh == m) {
                 continue;
             }
-            let far = lo.abs().max(hi.abs()).max_element();
-            let why = if far > MAX_WORLD_COORD {
-                Some(format!(
-                    "reaches {far:.3e} from the origin in its own units, beyond {MAX_WORLD_COORD:e} \
-                     (32-bit float geometry); scale the mesh down and its instances up"
-                ))
-            } else {
-                precision_problem(lo, hi, None).map(|w| format!("in its own units {w}"))
-            };
-            if let Some(why) = why {
+            if let Some(why) = mesh_units_problem(mesh, None) {
                 return Err(self.invalid(&join_key("meshes", &mesh_names[m]), why));
             }
         }
