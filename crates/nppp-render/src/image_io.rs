@@ -163,6 +163,19 @@ pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
     // The decoder opens the file itself: a pipe would block it, a device
     // feed it forever.
     nppp_files::check_regular(path).map_err(|e| err(&e))?;
+    // The decoder allocates the image its header declares before reading a
+    // pixel: a 441-byte file claiming 1e9 x 8 pixels aborted the process.
+    // No image nppp renders or compares is larger than a scene's largest.
+    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| err(&e))?;
+    let max = nppp_scene::MAX_IMAGE_SIDE as usize;
+    if let Some(h) = meta.headers.iter().find(|h| h.layer_size.width() > max || h.layer_size.height() > max) {
+        return Err(err(&format!(
+            "its header declares a {} x {} pixel layer, larger than any image nppp renders ({max} x {max}); \
+             the file is damaged or not an image of this scene",
+            h.layer_size.width(),
+            h.layer_size.height()
+        )));
+    }
     let img = exr::prelude::read_first_rgba_layer_from_file(
         path,
         |res: exr::math::Vec2<usize>, _| Image::new(res.width() as u32, res.height() as u32),
@@ -263,6 +276,69 @@ pub fn write_text(path: &Path, text: &str) -> Result<(), ImageError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An uncompressed float RGB scanline EXR header declaring `w` x `h`
+    /// pixels, its offset table, and no pixel data: what the decoder reads
+    /// before it allocates the image.
+    fn exr_header_only(w: i32, h: i32) -> Vec<u8> {
+        fn attr(out: &mut Vec<u8>, name: &str, ty: &str, v: &[u8]) {
+            for s in [name, ty] {
+                out.extend_from_slice(s.as_bytes());
+                out.push(0);
+            }
+            out.extend_from_slice(&(v.len() as i32).to_le_bytes());
+            out.extend_from_slice(v);
+        }
+        let mut channels = Vec::new();
+        for c in ["B", "G", "R"] {
+            channels.extend_from_slice(c.as_bytes());
+            channels.push(0);
+            for v in [2i32, 0, 1, 1] {
+                channels.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        channels.push(0);
+        let window: Vec<u8> = [0, 0, w - 1, h - 1].iter().flat_map(|v: &i32| v.to_le_bytes()).collect();
+        let mut out = vec![0x76, 0x2f, 0x31, 0x01, 2, 0, 0, 0];
+        attr(&mut out, "channels", "chlist", &channels);
+        attr(&mut out, "compression", "compression", &[0]);
+        attr(&mut out, "dataWindow", "box2i", &window);
+        attr(&mut out, "displayWindow", "box2i", &window);
+        attr(&mut out, "lineOrder", "lineOrder", &[0]);
+        attr(&mut out, "pixelAspectRatio", "float", &1f32.to_le_bytes());
+        attr(&mut out, "screenWindowCenter", "v2f", &[0; 8]);
+        attr(&mut out, "screenWindowWidth", "float", &1f32.to_le_bytes());
+        out.push(0);
+        let table_end = (out.len() + 8 * h as usize) as u64;
+        for _ in 0..h {
+            out.extend_from_slice(&table_end.to_le_bytes());
+        }
+        out.extend_from_slice(&[0; 64]);
+        out
+    }
+
+    /// A damaged or forged reference declaring a huge image is refused from
+    /// its header: the decoder would allocate 120 GB for this one and abort
+    /// the process before reading a pixel.
+    #[test]
+    fn an_exr_declaring_a_huge_image_is_refused_before_decoding() {
+        let dir = std::env::temp_dir().join(format!("nppp-exr-huge-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("wide.exr");
+        std::fs::write(&path, exr_header_only(1_000_000_000, 8)).unwrap();
+        let e = read_exr(&path).unwrap_err().to_string();
+        assert!(e.contains("wide.exr") && e.contains("1000000000 x 8 pixel layer"), "{e}");
+        // The same header at a size nppp renders gets past the check and
+        // fails on its missing pixels instead.
+        std::fs::write(&path, exr_header_only(16, 8)).unwrap();
+        let e = read_exr(&path).unwrap_err().to_string();
+        assert!(!e.contains("pixel layer"), "{e}");
+        // And a real image still reads.
+        let img = Image { width: 3, height: 2, pixels: vec![[0.5, 1.0, 2.0]; 6] };
+        write_exr(&img, &path).unwrap();
+        assert_eq!(read_exr(&path).unwrap(), img);
+        std::fs::remove_dir_all(&dir).ok();
+    }
 
     #[test]
     fn preview_exposure_and_curves() {
