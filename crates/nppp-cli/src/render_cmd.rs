@@ -517,7 +517,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         if nee != EntryNee::Off && !e.list.iter().any(|est| est.takes_light_samples()) {
             nppp_files::note!(
                 "warning: --entry-nee does nothing here: no estimator's object takes light \
-                 samples (glass and translucent objects have smooth, delta boundaries)"
+                 samples (smooth glass, smooth mirrors and translucent objects scatter only in \
+                 delta directions)"
             );
         }
         e.configure(settings.estimator_min_bounces, nee);

@@ -109,6 +109,12 @@ impl Estimator {
         matches!(&self.model, EstimatorModel::Neural { sampler } if sampler.has_vertex_head())
     }
 
+    /// `nee`, where this estimator's object takes light samples; else off
+    /// (see [`Estimators::configure`]).
+    pub fn applicable_entry_nee(&self, nee: EntryNee) -> EntryNee {
+        if self.takes_light_samples() { nee } else { EntryNee::Off }
+    }
+
     /// The next-event estimation through this estimator that applies: at
     /// the picked vertex its file's vertex head returns, else at the first
     /// vertex found on the real mesh; off where its object takes no light
@@ -859,11 +865,16 @@ impl Estimators {
         };
     }
 
-    /// Sets P and the entry NEE of every estimator.
+    /// Sets P and the entry NEE of every estimator. An estimator whose
+    /// object takes no light samples (smooth glass, a smooth mirror, a
+    /// translucent boundary) keeps its entry NEE off: there is nothing to
+    /// sample at its vertices, and every entry-NEE scheme counts the exit's
+    /// emitter hit by a weight that assumes a light sample was taken (the
+    /// light-only scheme counts it 0: a mirror ball rendered 34% dark).
     pub fn configure(&mut self, min_bounces: u32, entry_nee: EntryNee) {
         for e in &mut self.list {
             e.min_bounces = min_bounces;
-            e.entry_nee = entry_nee;
+            e.entry_nee = e.applicable_entry_nee(entry_nee);
         }
         self.min_bounces = min_bounces;
     }
@@ -873,8 +884,9 @@ impl Estimators {
     pub fn configure_one(&mut self, index: usize, choice: Option<(u32, EntryNee)>) {
         match choice {
             Some((p, nee)) => {
-                self.list[index].min_bounces = p;
-                self.list[index].entry_nee = nee;
+                let e = &mut self.list[index];
+                e.min_bounces = p;
+                e.entry_nee = e.applicable_entry_nee(nee);
             }
             None => {
                 for e in self.per_instance.iter_mut() {

@@ -199,6 +199,27 @@ fn light_seen_only_through_a_glass_object_counts_fully() {
 }
 
 #[test]
+fn entry_nee_leaves_objects_without_light_samples_alone() {
+    // A smooth mirror and smooth glass take no light samples: every entry-NEE
+    // scheme must then render them as without it. The light-only scheme
+    // counted the exit's emitter hits 0 with no light sample in their place
+    // (a mirror ball 34% dark).
+    for material in [
+        r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 0}"#,
+        r#"{"type": "dielectric", "ior": 1.5}"#,
+    ] {
+        let json = room(r#"{"icosphere": {"center": [0, 0, 0], "radius": 1, "subdivisions": 3}}"#, material, "");
+        let (pt, _) = render_mode(&json, EstimatorMode::Off, 0, 128, 6, 3);
+        for nee in [EntryNee::PickedVertexLightOnly, EntryNee::PickedVertex, EntryNee::FirstVertex] {
+            let (or, st) = render_mode_nee(&json, EstimatorMode::Oracle, 0, 128, 6, 4, nee);
+            assert!(st.estimators.entries > 0);
+            let d = rel_diff(or.mean(), pt.mean());
+            assert!(d < 0.02, "{material} {nee:?}: mean differs by {:.2}%", d * 100.0);
+        }
+    }
+}
+
+#[test]
 fn oracle_through_a_translucent_object_matches_path_tracing() {
     // A chromatic, forward-scattering medium in a glass ball, lit from
     // behind and from above: the oracle walks the medium in mesh units (the
