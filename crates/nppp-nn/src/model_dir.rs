@@ -59,6 +59,12 @@ pub mod files {
     /// Held (an OS file lock, released when the process ends, however it
     /// ends) by the one `nppp train` writing the directory.
     pub const LOCK: &str = ".nppp-train.lock";
+    /// Held exclusively while `nppp train` swaps a checkpoint in and
+    /// refreshes the copies beside it, and shared while a model is loaded
+    /// from the directory (`bake`), so that a bake during training reads
+    /// one whole checkpoint (it read a swapped-out file about once in 20
+    /// tries and called a healthy model corrupt, or panicked).
+    pub const CHECKPOINT_LOCK: &str = ".nppp-checkpoint.lock";
     /// Every name `nppp train` may create in a model directory: a fresh run
     /// refuses a non-empty `--out` holding anything else (a user's folder).
     pub const ALL: &[&str] = &[
@@ -72,6 +78,7 @@ pub mod files {
         CHECKPOINT_TMP,
         CHECKPOINT_OLD,
         LOCK,
+        CHECKPOINT_LOCK,
     ];
     /// The files a checkpoint holds besides `state.json`, which lists them.
     pub const IN_CHECKPOINT: &[&str] = &[WEIGHTS, OPTIMIZER, TRAIN_CONFIG, MODEL_CONFIG, META, LOG];
@@ -288,10 +295,15 @@ fn no_panic<T>(what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
 pub fn load_weights(ckpt: &Checkpoint, device: &Device) -> Result<NpppModel> {
     let path = ckpt.dir.join(files::WEIGHTS);
     let fresh = NpppModel::init(&ckpt.train_config.model, 0, device)?;
+    // Read whole, then decoded: a record read from the file lazily would
+    // read it after a checkpoint lock is released.
+    let bytes = fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
     no_panic(&format!("loading {}", path.display()), || {
+        let record = burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes))
+            .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))?;
         fresh
-            .try_load_file(&path)
-            .map_err(|e| anyhow::anyhow!("loading {}: {e:?}", path.display()))
+            .try_load_record(record)
+            .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))
     })
 }
 
@@ -334,6 +346,21 @@ pub fn check_fresh_out(out: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Waits for and takes the checkpoint lock of model directory `dir`
+/// ([`files::CHECKPOINT_LOCK`]): exclusive for the one writer, shared for
+/// readers. A reader that cannot create the lock file (a read-only model
+/// directory, which no training run can be writing) reads without it.
+fn checkpoint_lock(dir: &Path, exclusive: bool) -> Result<Option<fs::File>> {
+    let p = dir.join(files::CHECKPOINT_LOCK);
+    let f = match fs::OpenOptions::new().create(true).truncate(false).write(true).open(&p) {
+        Ok(f) => f,
+        Err(_) if !exclusive => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("opening {}", p.display())),
+    };
+    if exclusive { f.lock() } else { f.lock_shared() }.with_context(|| format!("locking {}", p.display()))?;
+    Ok(Some(f))
+}
+
 /// Takes the model directory for this process (creating it if needed): two
 /// runs writing one directory would interleave their checkpoints. The lock
 /// is the OS's (`flock`), so a killed run never leaves a stale one.
@@ -365,10 +392,11 @@ pub fn lock_model_dir(out: &Path) -> Result<ModelDirLock> {
 }
 
 /// The lock on a model directory, held while training writes it. A folder
-/// the run created is removed again when the run ends without writing
-/// anything into it (an error or a divergence before the first
-/// checkpoint): it held only the lock file, which looked like a model
-/// folder to the user and to the next `train` without `--overwrite`.
+/// the run created is removed again when the run ends without a complete
+/// checkpoint in it (an error, a full disk or a divergence before the first
+/// checkpoint was swapped in): its lock files, copies and partial
+/// `checkpoint.tmp` looked like a model folder to the user and to the next
+/// `train` without `--overwrite`.
 pub struct ModelDirLock {
     _file: fs::File,
     dir: PathBuf,
@@ -377,17 +405,18 @@ pub struct ModelDirLock {
 
 impl Drop for ModelDirLock {
     fn drop(&mut self) {
-        if !self.created {
+        if !self.created || checkpoint_dir(&self.dir).is_some() {
             return;
         }
-        let only_lock = fs::read_dir(&self.dir).is_ok_and(|entries| {
-            entries
-                .filter_map(|e| e.ok())
-                .all(|e| e.file_name() == files::LOCK)
+        // Only what `nppp train` writes: the folder is this run's own.
+        let ours = fs::read_dir(&self.dir).is_ok_and(|entries| {
+            entries.filter_map(|e| e.ok()).all(|e| {
+                let name = e.file_name().to_string_lossy().into_owned();
+                files::ALL.contains(&name.as_str()) || (name.starts_with('.') && name.ends_with(".tmp"))
+            })
         });
-        if only_lock {
-            let _ = fs::remove_file(self.dir.join(files::LOCK));
-            let _ = fs::remove_dir(&self.dir);
+        if ours {
+            let _ = fs::remove_dir_all(&self.dir);
         }
     }
 }
@@ -412,40 +441,18 @@ fn sync_file(p: &Path) -> Result<()> {
 /// refreshes the copies beside it. `state.files` is filled in here.
 pub fn save_checkpoint(out: &Path, c: &CheckpointContent, state: &TrainState) -> Result<()> {
     let tmp = out.join(files::CHECKPOINT_TMP);
+    let texts = match write_checkpoint_tmp(&tmp, c, state) {
+        Ok(texts) => texts,
+        Err(e) => {
+            // A full disk or an unwritable file: the last complete checkpoint
+            // stays as it was, and no partial one is left beside it.
+            let _ = fs::remove_dir_all(&tmp);
+            return Err(e);
+        }
+    };
     let cur = out.join(files::CHECKPOINT);
     let old = out.join(files::CHECKPOINT_OLD);
-    if tmp.exists() {
-        fs::remove_dir_all(&tmp).with_context(|| format!("removing {}", tmp.display()))?;
-    }
-    fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
-    let w = tmp.join(files::WEIGHTS);
-    c.model
-        .clone()
-        .save_file(&w)
-        .map_err(|e| anyhow::anyhow!("saving weights to {}: {e:?}", w.display()))?;
-    sync_file(&w)?;
-    nppp_files::crash_point("checkpoint:weights-written");
-    let o = tmp.join(files::OPTIMIZER);
-    c.optim
-        .save(&o)
-        .map_err(|e| anyhow::anyhow!("saving optimizer state to {}: {e:?}", o.display()))?;
-    sync_file(&o)?;
-    let texts = texts(c)?;
-    for (name, text) in &texts {
-        let p = tmp.join(name);
-        nppp_files::write_atomic(&p, text.as_bytes())
-            .with_context(|| format!("writing {}", p.display()))?;
-    }
-    let mut state = state.clone();
-    state.version = STATE_VERSION;
-    state.files = files::IN_CHECKPOINT
-        .iter()
-        .map(|n| FileSum::of(&tmp, n))
-        .collect::<Result<_>>()?;
-    let sp = tmp.join(files::STATE);
-    nppp_files::write_atomic(&sp, serde_json::to_string_pretty(&state)?.as_bytes())
-        .with_context(|| format!("writing {}", sp.display()))?;
-    nppp_files::crash_point("checkpoint:complete");
+    let _lock = checkpoint_lock(out, true)?;
     // Swap. `checkpoint` is the last complete one if it exists; otherwise
     // (a kill between renames) `checkpoint.old` is, and stays until the new
     // one is in place.
@@ -467,11 +474,55 @@ pub fn save_checkpoint(out: &Path, c: &CheckpointContent, state: &TrainState) ->
     write_copies(out, &texts)
 }
 
+/// Writes a complete checkpoint into `tmp` (replacing what is there) and
+/// returns the text files it holds, for the copies beside it.
+fn write_checkpoint_tmp(
+    tmp: &Path,
+    c: &CheckpointContent,
+    state: &TrainState,
+) -> Result<Vec<(&'static str, String)>> {
+    if tmp.exists() {
+        fs::remove_dir_all(&tmp).with_context(|| format!("removing {}", tmp.display()))?;
+    }
+    fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    let w = tmp.join(files::WEIGHTS);
+    c.model
+        .clone()
+        .save_file(&w)
+        .map_err(|e| anyhow::anyhow!("saving weights to {}: {e}", w.display()))?;
+    sync_file(&w)?;
+    nppp_files::crash_point("checkpoint:weights-written");
+    let o = tmp.join(files::OPTIMIZER);
+    c.optim
+        .save(&o)
+        .map_err(|e| anyhow::anyhow!("saving optimizer state to {}: {e}", o.display()))?;
+    sync_file(&o)?;
+    let texts = texts(c)?;
+    for (name, text) in &texts {
+        let p = tmp.join(name);
+        nppp_files::write_atomic(&p, text.as_bytes())
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    let mut state = state.clone();
+    state.version = STATE_VERSION;
+    state.files = files::IN_CHECKPOINT
+        .iter()
+        .map(|n| FileSum::of(&tmp, n))
+        .collect::<Result<_>>()?;
+    let sp = tmp.join(files::STATE);
+    nppp_files::write_atomic(&sp, serde_json::to_string_pretty(&state)?.as_bytes())
+        .with_context(|| format!("writing {}", sp.display()))?;
+    nppp_files::crash_point("checkpoint:complete");
+    Ok(texts)
+}
+
 /// Replaces the copies beside the checkpoint with its own files' content
 /// (at every checkpoint, and when a run resumes: a kill between a swap and
 /// the copies may have left them stale).
 pub fn refresh_copies(out: &Path, c: &CheckpointContent) -> Result<()> {
-    write_copies(out, &texts(c)?)
+    let texts = texts(c)?;
+    let _lock = checkpoint_lock(out, true)?;
+    write_copies(out, &texts)
 }
 
 fn write_copies(out: &Path, texts: &[(&'static str, String)]) -> Result<()> {
@@ -514,10 +565,13 @@ pub fn load_model_dir(dir: &Path, device: &Device) -> Result<LoadedModel> {
         }
         bail!("model directory {} does not exist", dir.display());
     }
+    // A training run may be swapping a checkpoint in: read one whole.
+    let lock = checkpoint_lock(dir, false)?;
     let ckpt = open_checkpoint(dir)?
         .with_context(|| format!("{} holds no checkpoint (train first)", dir.display()))?;
     let device = device.clone().without_autodiff();
     let model = load_weights(&ckpt, &device)?;
+    drop(lock);
     Ok(LoadedModel {
         dir: dir.to_path_buf(),
         model_config: ckpt.train_config.model.clone(),

@@ -216,7 +216,9 @@ fn divergence_before_the_first_checkpoint_says_there_is_none() {
         "{msg}"
     );
     assert!(!msg.contains("--resume"), "{msg}");
-    assert!(!fresh.join(files::CHECKPOINT).exists());
+    // A fresh run without a checkpoint leaves no folder (its copies and
+    // lock files made it look like a model to the next `train`).
+    assert!(!fresh.exists(), "{} is left behind", fresh.display());
 
     let dir = tmp("nan-overwrite");
     train_with_data(&opts(&dir).tap_epochs(1), info.clone(), data.clone()).unwrap();
@@ -226,6 +228,36 @@ fn divergence_before_the_first_checkpoint_says_there_is_none() {
     let msg = train_with_data(&o, info, data).unwrap_err().to_string();
     assert!(msg.contains("before --overwrite is untouched"), "{msg}");
     assert!(weights(&dir) == good, "the old model changed");
+}
+
+#[test]
+fn loading_a_model_waits_for_a_checkpoint_being_swapped_in() {
+    // `bake` during training: train holds the checkpoint lock exclusively
+    // while it swaps a checkpoint in; a load waits for it instead of reading
+    // a half-moved directory (a healthy model was called corrupt).
+    let (info, data) = mirror_data(300, 4);
+    let dir = tmp("checkpoint-lock");
+    train_with_data(&opts(&dir).tap_epochs(1), info, data).unwrap();
+    let lock = fs::OpenOptions::new()
+        .write(true)
+        .open(dir.join(files::CHECKPOINT_LOCK))
+        .unwrap();
+    lock.lock().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let d = dir.clone();
+    let loader = std::thread::spawn(move || {
+        let device = BackendKind::Ndarray.device().unwrap();
+        let loaded = nppp_nn::load_model_dir(&d, &device).map(|_| ());
+        tx.send(()).unwrap();
+        loaded
+    });
+    assert!(
+        rx.recv_timeout(std::time::Duration::from_millis(300)).is_err(),
+        "the model loaded while its checkpoint was locked"
+    );
+    lock.unlock().unwrap();
+    rx.recv_timeout(std::time::Duration::from_secs(60)).expect("the load never finished");
+    loader.join().unwrap().unwrap();
 }
 
 #[test]
