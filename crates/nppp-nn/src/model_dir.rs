@@ -299,8 +299,9 @@ pub fn load_weights(ckpt: &Checkpoint, device: &Device) -> Result<NpppModel> {
     // read it after a checkpoint lock is released.
     let bytes = fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
     no_panic(&format!("loading {}", path.display()), || {
-        let record = burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes))
-            .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))?;
+        let record =
+            burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes))
+                .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))?;
         fresh
             .try_load_record(record)
             .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))
@@ -352,12 +353,18 @@ pub fn check_fresh_out(out: &Path) -> Result<()> {
 /// directory, which no training run can be writing) reads without it.
 fn checkpoint_lock(dir: &Path, exclusive: bool) -> Result<Option<fs::File>> {
     let p = dir.join(files::CHECKPOINT_LOCK);
-    let f = match fs::OpenOptions::new().create(true).truncate(false).write(true).open(&p) {
+    let f = match fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&p)
+    {
         Ok(f) => f,
         Err(_) if !exclusive => return Ok(None),
         Err(e) => return Err(e).with_context(|| format!("opening {}", p.display())),
     };
-    if exclusive { f.lock() } else { f.lock_shared() }.with_context(|| format!("locking {}", p.display()))?;
+    if exclusive { f.lock() } else { f.lock_shared() }
+        .with_context(|| format!("locking {}", p.display()))?;
     Ok(Some(f))
 }
 
@@ -412,7 +419,8 @@ impl Drop for ModelDirLock {
         let ours = fs::read_dir(&self.dir).is_ok_and(|entries| {
             entries.filter_map(|e| e.ok()).all(|e| {
                 let name = e.file_name().to_string_lossy().into_owned();
-                files::ALL.contains(&name.as_str()) || (name.starts_with('.') && name.ends_with(".tmp"))
+                files::ALL.contains(&name.as_str())
+                    || (name.starts_with('.') && name.ends_with(".tmp"))
             })
         });
         if ours {

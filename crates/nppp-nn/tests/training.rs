@@ -252,11 +252,13 @@ fn loading_a_model_waits_for_a_checkpoint_being_swapped_in() {
         loaded
     });
     assert!(
-        rx.recv_timeout(std::time::Duration::from_millis(300)).is_err(),
+        rx.recv_timeout(std::time::Duration::from_millis(300))
+            .is_err(),
         "the model loaded while its checkpoint was locked"
     );
     lock.unlock().unwrap();
-    rx.recv_timeout(std::time::Duration::from_secs(60)).expect("the load never finished");
+    rx.recv_timeout(std::time::Duration::from_secs(60))
+        .expect("the load never finished");
     loader.join().unwrap().unwrap();
 }
 

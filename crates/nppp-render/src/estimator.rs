@@ -112,7 +112,11 @@ impl Estimator {
     /// `nee`, where this estimator's object takes light samples; else off
     /// (see [`Estimators::configure`]).
     pub fn applicable_entry_nee(&self, nee: EntryNee) -> EntryNee {
-        if self.takes_light_samples() { nee } else { EntryNee::Off }
+        if self.takes_light_samples() {
+            nee
+        } else {
+            EntryNee::Off
+        }
     }
 
     /// The next-event estimation through this estimator that applies: at

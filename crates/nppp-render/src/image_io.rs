@@ -168,7 +168,11 @@ pub fn read_exr(path: &Path) -> Result<Image, ImageError> {
     // No image nppp renders or compares is larger than a scene's largest.
     let meta = exr::meta::MetaData::read_from_file(path, false).map_err(|e| err(&e))?;
     let max = nppp_scene::MAX_IMAGE_SIDE as usize;
-    if let Some(h) = meta.headers.iter().find(|h| h.layer_size.width() > max || h.layer_size.height() > max) {
+    if let Some(h) = meta
+        .headers
+        .iter()
+        .find(|h| h.layer_size.width() > max || h.layer_size.height() > max)
+    {
         return Err(err(&format!(
             "its header declares a {} x {} pixel layer, larger than any image nppp renders ({max} x {max}); \
              the file is damaged or not an image of this scene",
@@ -298,7 +302,10 @@ mod tests {
             }
         }
         channels.push(0);
-        let window: Vec<u8> = [0, 0, w - 1, h - 1].iter().flat_map(|v: &i32| v.to_le_bytes()).collect();
+        let window: Vec<u8> = [0, 0, w - 1, h - 1]
+            .iter()
+            .flat_map(|v: &i32| v.to_le_bytes())
+            .collect();
         let mut out = vec![0x76, 0x2f, 0x31, 0x01, 2, 0, 0, 0];
         attr(&mut out, "channels", "chlist", &channels);
         attr(&mut out, "compression", "compression", &[0]);
@@ -327,14 +334,21 @@ mod tests {
         let path = dir.join("wide.exr");
         std::fs::write(&path, exr_header_only(1_000_000_000, 8)).unwrap();
         let e = read_exr(&path).unwrap_err().to_string();
-        assert!(e.contains("wide.exr") && e.contains("1000000000 x 8 pixel layer"), "{e}");
+        assert!(
+            e.contains("wide.exr") && e.contains("1000000000 x 8 pixel layer"),
+            "{e}"
+        );
         // The same header at a size nppp renders gets past the check and
         // fails on its missing pixels instead.
         std::fs::write(&path, exr_header_only(16, 8)).unwrap();
         let e = read_exr(&path).unwrap_err().to_string();
         assert!(!e.contains("pixel layer"), "{e}");
         // And a real image still reads.
-        let img = Image { width: 3, height: 2, pixels: vec![[0.5, 1.0, 2.0]; 6] };
+        let img = Image {
+            width: 3,
+            height: 2,
+            pixels: vec![[0.5, 1.0, 2.0]; 6],
+        };
         write_exr(&img, &path).unwrap();
         assert_eq!(read_exr(&path).unwrap(), img);
         std::fs::remove_dir_all(&dir).ok();

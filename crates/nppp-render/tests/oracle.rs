@@ -208,13 +208,25 @@ fn entry_nee_leaves_objects_without_light_samples_alone() {
         r#"{"type": "conductor", "reflectance": [1, 1, 1], "roughness": 0}"#,
         r#"{"type": "dielectric", "ior": 1.5}"#,
     ] {
-        let json = room(r#"{"icosphere": {"center": [0, 0, 0], "radius": 1, "subdivisions": 3}}"#, material, "");
+        let json = room(
+            r#"{"icosphere": {"center": [0, 0, 0], "radius": 1, "subdivisions": 3}}"#,
+            material,
+            "",
+        );
         let (pt, _) = render_mode(&json, EstimatorMode::Off, 0, 128, 6, 3);
-        for nee in [EntryNee::PickedVertexLightOnly, EntryNee::PickedVertex, EntryNee::FirstVertex] {
+        for nee in [
+            EntryNee::PickedVertexLightOnly,
+            EntryNee::PickedVertex,
+            EntryNee::FirstVertex,
+        ] {
             let (or, st) = render_mode_nee(&json, EstimatorMode::Oracle, 0, 128, 6, 4, nee);
             assert!(st.estimators.entries > 0);
             let d = rel_diff(or.mean(), pt.mean());
-            assert!(d < 0.02, "{material} {nee:?}: mean differs by {:.2}%", d * 100.0);
+            assert!(
+                d < 0.02,
+                "{material} {nee:?}: mean differs by {:.2}%",
+                d * 100.0
+            );
         }
     }
 }

@@ -183,6 +183,18 @@ pub struct PilotOptions {
     /// blurred), a loss of sharpness that keeps the image mean and that no
     /// variance measurement sees.
     pub min_p: u32,
+    /// Smallest P tried for an estimator whose object takes light samples
+    /// (diffuse, rough conductor: its configurations use next-event
+    /// estimation at the network's picked vertex). 2 by default: the
+    /// networks' picked vertices and exits are accurate to about 1% under
+    /// light like the Cornell box's ceiling lamp, but under light they
+    /// were not checked with their error grows, most at small P, and no
+    /// pilot sees it (the knot beside a lamp at its side: 4.2% dark at
+    /// P = 1, 0.7% at P = 2; its pilot measured +1.3%; BENCHMARKS.md,
+    /// "Where NPPP loses"). P = 1 was where these objects tied or beat PT
+    /// by a few percent (gold 1.06x-1.09x), so auto now leaves them off in
+    /// most scenes; `--estimators neural --min-bounces 1` still runs them.
+    pub min_p_light_sampled: u32,
     /// Smallest P tried for a translucent object's estimator. 0 by default:
     /// what the camera sees of a dense medium is subsurface transport, which
     /// the network reproduces (cornell-jade at P = 0: image mean within 0.3%
@@ -257,6 +269,7 @@ impl Default for PilotOptions {
             seed: 0,
             margin: 1.05,
             min_p: 1,
+            min_p_light_sampled: 2,
             min_p_medium: 0,
             max_p: 2,
             bias_tolerance: 0.03,
@@ -301,6 +314,13 @@ pub struct Trial {
     /// the variance of that mean.
     pub mean: f64,
     pub mean_var: f64,
+    /// The variance of the mean of its difference from PT's pilot, pixel
+    /// by pixel, where both were rendered with the same seeds (infinite
+    /// where not measured so). Paths agree until they meet the estimator,
+    /// so this is far below `mean_var + pt.mean_var`: the bias test sees a
+    /// few percent where the two images' own noise hid it (a knot lit from
+    /// one side, 4.6% dark with the network, passed the unpaired test).
+    pub paired_diff_var: f64,
     /// Its mean differs from PT's by more than noise and
     /// [`PilotOptions::bias_tolerance`] allow: never chosen.
     pub biased: bool,
@@ -332,6 +352,7 @@ impl Trial {
             efficiency: 1.0,
             mean,
             mean_var,
+            paired_diff_var: f64::INFINITY,
             biased: false,
             skipped: false,
         }
@@ -349,6 +370,7 @@ impl Trial {
             efficiency: 0.0,
             mean: f64::NAN,
             mean_var: f64::INFINITY,
+            paired_diff_var: f64::INFINITY,
             biased: false,
             skipped: true,
         }
@@ -519,6 +541,8 @@ fn candidates(est: &crate::estimator::Estimator, opts: &PilotOptions) -> Vec<Cho
     let entry_nee = est.light_sampling_entry_nee();
     let min_p = if est.medium.is_some() {
         opts.min_p_medium
+    } else if entry_nee != EntryNee::Off {
+        opts.min_p.max(opts.min_p_light_sampled)
     } else {
         opts.min_p
     };
@@ -695,7 +719,7 @@ fn pilot(
             let so_far = renders([&pa, &pb], &measured);
             let norm = normalization(&[so_far, vec![&m.a, &m.b]].concat());
             let pt = trial(&norm, None, &pa, &pb, pt_cost);
-            let mut t = trial(&norm, Some(m.choice), &m.a, &m.b, m.cost);
+            let mut t = paired_trial(&norm, m.choice, (&m.a, &m.b), (&pa, &pb), m.cost);
             score(&pt, &mut t);
             if t.efficiency.is_finite() {
                 best = best.max(t.efficiency);
@@ -717,7 +741,7 @@ fn pilot(
                 .find(|m| m.index == index && m.choice == probe.choice);
             trials.push(match done {
                 Some(m) => {
-                    let mut t = trial(&norm, Some(m.choice), &m.a, &m.b, m.cost);
+                    let mut t = paired_trial(&norm, m.choice, (&m.a, &m.b), (&pa, &pb), m.cost);
                     score(&pt, &mut t);
                     t
                 }
@@ -800,9 +824,60 @@ fn trial(norm: &[[f32; 3]], choice: Option<Choice>, a: &Image, b: &Image, cost: 
     Trial::measured(choice, pixel_rel_var(a, b, norm), cost, mean, mean_var)
 }
 
-/// Bias test and efficiency of `t` against PT's trial.
+/// [`trial`] of a candidate rendered with PT's seeds, whose halves `a` and
+/// `b` pair with PT's `pa` and `pb`: with [`Trial::paired_diff_var`].
+fn paired_trial(
+    norm: &[[f32; 3]],
+    choice: Choice,
+    (a, b): (&Image, &Image),
+    (pa, pb): (&Image, &Image),
+    cost: f64,
+) -> Trial {
+    let mut t = trial(norm, Some(choice), a, b, cost);
+    t.paired_diff_var = paired_difference_variance(a, b, pa, pb);
+    t
+}
+
+/// The variance of the mean of `(a + b) / 2 - (pa + pb) / 2` over pixels
+/// and channels, where `a` pairs with `pa` and `b` with `pb` (same seeds):
+/// per pixel, the two pairs' differences are independent estimates of the
+/// same difference, so their spread gives its variance.
+fn paired_difference_variance(a: &Image, b: &Image, pa: &Image, pb: &Image) -> f64 {
+    if a.pixels.len() != pa.pixels.len()
+        || b.pixels.len() != pb.pixels.len()
+        || a.pixels.len() != b.pixels.len()
+    {
+        return f64::INFINITY;
+    }
+    let mut var = 0.0f64;
+    let mut n = 0usize;
+    for (((x, y), px), py) in a
+        .pixels
+        .iter()
+        .zip(&b.pixels)
+        .zip(&pa.pixels)
+        .zip(&pb.pixels)
+    {
+        for c in 0..3 {
+            let d = (x[c] as f64 - px[c] as f64) - (y[c] as f64 - py[c] as f64);
+            var += 0.25 * d * d;
+            n += 1;
+        }
+    }
+    let n = n.max(1) as f64;
+    if var.is_finite() {
+        var / (n * n)
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// Bias test and efficiency of `t` against PT's trial: its image mean may
+/// differ from PT's by 4 standard deviations of noise (of the paired
+/// difference where measured, else of the two means) and
+/// [`PilotOptions::bias_tolerance`].
 fn score(pt: &Trial, t: &mut Trial, opts: &PilotOptions) {
-    let noise = 4.0 * (t.mean_var + pt.mean_var).sqrt();
+    let noise = 4.0 * t.paired_diff_var.min(t.mean_var + pt.mean_var).sqrt();
     t.biased = (t.mean - pt.mean).abs() > noise + opts.bias_tolerance * pt.mean.abs();
     t.efficiency = if t.biased {
         0.0
@@ -1022,6 +1097,7 @@ mod tests {
             efficiency: 0.0,
             mean: 0.5,
             mean_var: 0.0,
+            paired_diff_var: f64::INFINITY,
             biased: false,
             skipped: false,
         }
