@@ -2020,6 +2020,20 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
     ]);
     assert_clean_error("bench, one name twice", &o, &["have the same file name"]);
     assert!(!out.exists(), "bench created --out before refusing");
+    // A bad scene after a good one is refused before the good one's
+    // renders, not after them.
+    let bad = dir.join("bad.json");
+    std::fs::write(&bad, std::fs::read_to_string(&scene).unwrap().replacen("{", "{\"bogus\": 1, ", 1)).unwrap();
+    let scenes = format!("{},{}", a.join("x.json").display(), bad.display());
+    let o = nppp([
+        "bench".as_ref(),
+        "--scenes".as_ref(),
+        scenes.as_ref(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    assert_clean_error("bench, a bad second scene", &o, &["bad.json", "bogus"]);
+    assert!(!out.exists(), "bench began before checking every scene");
 
     for (name, line) in [
         ("text", "v 0 0 0 abc"),

@@ -94,6 +94,12 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
             a.out.display()
         );
     }
+    // Every scene is read and checked before any is benchmarked: a bad
+    // second scene used to end the run after the first's hours of renders.
+    let scenes: Vec<nppp_scene::Scene> = paths
+        .iter()
+        .map(|p| nppp_scene::load_scene(p).with_context(|| format!("benchmarking {}", p.display())))
+        .collect::<Result<_>>()?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let machine = Machine::probe();
     nppp_files::note!(
@@ -108,20 +114,35 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
     );
     let t0 = Instant::now();
     let mut results = Vec::new();
-    for path in &paths {
-        results.push(
-            bench_scene(a, &plan, path)
-                .with_context(|| format!("benchmarking {}", path.display()))?,
-        );
+    let md_path = a.out.join("results.md");
+    let csv_path = a.out.join("results.csv");
+    let write_reports = |results: &[SceneResult]| -> Result<()> {
+        let md = report_markdown(a, &plan, &machine, results, t0.elapsed().as_secs_f64());
+        image_io::write_text(&md_path, &md)
+            .with_context(|| format!("writing {}", md_path.display()))?;
+        image_io::write_text(&csv_path, &report_csv(results))
+            .with_context(|| format!("writing {}", csv_path.display()))?;
+        Ok(())
+    };
+    for (path, scene) in paths.iter().zip(scenes) {
+        match bench_scene(a, &plan, path, scene) {
+            Ok(r) => results.push(r),
+            Err(e) => {
+                // What finished is kept: the scenes before this one.
+                if !results.is_empty() && write_reports(&results).is_ok() {
+                    nppp_files::note!(
+                        "bench stopped; the {} scene(s) benchmarked before are in {} and {}",
+                        results.len(),
+                        md_path.display(),
+                        csv_path.display()
+                    );
+                }
+                return Err(e.context(format!("benchmarking {}", path.display())));
+            }
+        }
     }
     let total = t0.elapsed().as_secs_f64();
-    let md = report_markdown(a, &plan, &machine, &results, total);
-    let md_path = a.out.join("results.md");
-    image_io::write_text(&md_path, &md)
-        .with_context(|| format!("writing {}", md_path.display()))?;
-    let csv_path = a.out.join("results.csv");
-    image_io::write_text(&csv_path, &report_csv(&results))
-        .with_context(|| format!("writing {}", csv_path.display()))?;
+    write_reports(&results)?;
     let mut plots = Vec::new();
     for r in &results {
         plots.extend(plot_scene(r, &a.out)?);
@@ -181,10 +202,10 @@ pub(super) fn render_with(
     )
 }
 
-fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
+/// Benchmarks `scene`, read from `path`.
+fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path, mut scene: nppp_scene::Scene) -> Result<SceneResult> {
     let name = scene_name(path);
     let dir = a.out.join(&name);
-    let mut scene = nppp_scene::load_scene(path)?;
     let hash = scene_hash(path, &scene)?;
     scene
         .camera
