@@ -130,12 +130,14 @@ impl TrainingLog {
     }
 }
 
-/// Whether a value can be drawn: finite, and far enough from f64's limits
-/// that an axis padded around it (by 1.5x at most) stays finite. An axis
-/// that reached infinity made plotters loop forever (a log with a loss of
-/// 1.7e308 hung `nppp plot-log`).
+/// Whether a value can be drawn: finite, and within 1e-150..1e150 in
+/// magnitude (or 0), so that an axis padded around any two of them stays
+/// finite and spans at most 300 decades. An axis that reached infinity made
+/// plotters loop forever (a log with a loss of 1.7e308 hung `nppp
+/// plot-log`), and so did a log axis over more than 308 decades (losses of
+/// 1e-200 and 1e200).
 pub(crate) fn plottable(v: f64) -> bool {
-    v.is_finite() && (v == 0.0 || (1e-300..=1e300).contains(&v.abs()))
+    v.is_finite() && (v == 0.0 || (1e-150..=1e150).contains(&v.abs()))
 }
 
 /// The smallest and largest x and y of `points`: (x0, x1, y0, y1), with
@@ -379,7 +381,8 @@ mod tests {
         // 1.7e308 reached infinity and plotters never returned.
         std::fs::write(
             &csv,
-            "epoch,step,train_loss\n0.1,100,1.7e308\n0.2,200,1.0\n0.3,300,1e-320\n0.4,400,inf\n",
+            "epoch,step,train_loss\n0.1,100,1.7e308\n0.2,200,1.0\n0.3,300,1e-320\n0.4,400,inf\n\
+             0.5,500,1e-200\n0.6,600,1e200\n",
         )
         .unwrap();
         let log = TrainingLog::read(&csv).unwrap();

@@ -299,6 +299,8 @@ mod tests {
         assert!(drawable(&(0.5, 1e-3)));
         for p in [
             (1.7e308, 0.1),
+            (1e-300, 0.1),
+            (0.5, 1e200),
             (f64::INFINITY, 0.1),
             (0.5, f64::NAN),
             (0.0, 0.1),
@@ -314,6 +316,8 @@ mod tests {
             &csv,
             "scene,config,kind,max_bounces,min_bounces,spp,width,height,seconds,rel_mse\n\
              s,PT M=1,pt,1,,1,8,8,1.7e308,0.1\n\
+             s,PT M=3,pt,3,,1,8,8,1e-300,0.1\n\
+             s,PT M=3,pt,3,,2,8,8,1e300,0.1\n\
              s,PT M=2,pt,2,,1,8,8,0.5,0.2\n\
              s,PT M=2,pt,2,,4,8,8,2.0,0.05\n",
         )
