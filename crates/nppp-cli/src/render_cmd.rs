@@ -906,6 +906,17 @@ fn estimator_warnings(st: &nppp_render::estimator::EstimatorStats) -> Vec<String
             100.0 * share(bad)
         ));
     }
+    if share(u64::from(st.repairs.vertices)) > SUSPICIOUS_REPAIR_SHARE {
+        w.push(format!(
+            "{} of {} picked vertices ({:.0}%) were outside the object's sphere, degenerate or \
+             beyond the throughput the object can return, and were repaired: the vertex head is \
+             poorly trained or was not made for this object; the light at its vertices is \
+             probably wrong. Train longer, or render with --entry-nee off",
+            st.repairs.vertices,
+            st.entries,
+            100.0 * share(u64::from(st.repairs.vertices))
+        ));
+    }
     w
 }
 
@@ -932,6 +943,11 @@ mod tests {
         );
         st.repairs.inward = 5_000;
         assert_eq!(estimator_warnings(&st).len(), 2);
+        st.repairs.vertices = 150;
+        assert_eq!(estimator_warnings(&st).len(), 2, "0.6% of vertices is normal");
+        st.repairs.vertices = 25_000;
+        let w = estimator_warnings(&st);
+        assert!(w.len() == 3 && w[2].contains("picked vertices (98%)"), "{w:?}");
         st.entries = 0;
         assert!(estimator_warnings(&st).is_empty());
     }

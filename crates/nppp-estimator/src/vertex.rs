@@ -111,6 +111,9 @@ impl VertexTransform {
             repaired = true;
             position = Vec3::ZERO;
         } else if position.length_squared() > 1.0 {
+            // Every vertex of the object lies inside its sphere (by a 1%
+            // margin): one outside is the network's error, counted.
+            repaired = true;
             position = position.normalize_or_zero();
         }
         let normal = safe_normalize(Vec3::new(raw[3], raw[4], raw[5]));
@@ -147,6 +150,20 @@ mod tests {
 
     fn unit(v: [f32; 3]) -> Vec3 {
         Vec3::from(v).try_normalize().unwrap_or(Vec3::Z)
+    }
+
+    /// A position the network put outside the unit sphere is pulled onto it
+    /// and counted as a repair (a forged head's far vertices changed the
+    /// image with no word).
+    #[test]
+    fn a_vertex_outside_the_sphere_is_repaired_and_counted() {
+        let v = PickedVertex { position: Vec3::new(0.3, 0.0, 0.0), normal: Vec3::Z, wo: Vec3::Z, beta: Vec3::ONE, index: 1 };
+        let t = VertexTransform::fit([v, PickedVertex { index: 3, ..v }].iter());
+        let far = PickedVertex { position: Vec3::new(3.0, 0.0, 0.0), ..v };
+        let (d, repaired) = t.decode(&t.encode(&far), 10);
+        assert!(repaired);
+        assert!((d.position - Vec3::X).length() < 1e-5, "{:?}", d.position);
+        assert!(!t.decode(&t.encode(&v), 10).1);
     }
 
     proptest! {
