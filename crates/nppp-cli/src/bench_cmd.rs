@@ -27,10 +27,10 @@ pub struct BenchArgs {
     pub out: PathBuf,
     /// Seeds per measurement (seeds 1..=N); errors are reported as mean and
     /// standard deviation over them.
-    #[arg(long)]
+    #[arg(long, value_parser = crate::at_least_one::<u32>)]
     pub seeds: Option<u32>,
     /// The spp ladder, comma-separated (overrides --quick's and the full default).
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', value_parser = crate::at_least_one::<u32>)]
     pub spp: Option<Vec<u32>>,
     /// Samples per pixel of the reference.
     #[arg(long)]
@@ -43,7 +43,7 @@ pub struct BenchArgs {
     /// `render.max_bounces` (cornell-glass renders at M = 10, cornell-jade at
     /// 256, the rest at 5). PT's M' ladder is every value to 16, then about
     /// two per octave.
-    #[arg(long)]
+    #[arg(long, value_parser = crate::at_least_one::<u32>)]
     pub max_bounces: Option<u32>,
     /// Also run PT + oracle (the real object traced alone in place of the
     /// network) at each P: the error the estimator's integration allows.

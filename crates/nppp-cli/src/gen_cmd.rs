@@ -64,11 +64,11 @@ pub struct GenArgs {
     pub material: Option<String>,
     /// Input rays, uniform in the 4D sphere-pair parameterization (the
     /// default is the recipe of the committed estimators).
-    #[arg(long, default_value_t = nppp_estimator::recipe::DEFAULT_RAYS)]
+    #[arg(long, default_value_t = nppp_estimator::recipe::DEFAULT_RAYS, value_parser = crate::at_least_one::<u64>)]
     pub rays: u64,
     /// Exits traced per input ray that hits the object (`nppp train` uses
     /// this many per step by default).
-    #[arg(long, default_value_t = nppp_estimator::recipe::DEFAULT_K)]
+    #[arg(long, default_value_t = nppp_estimator::recipe::DEFAULT_K, value_parser = crate::at_least_one::<u32>)]
     pub k: u32,
     /// Seed of every random stream: the file is a function of the object,
     /// the flags and this seed, whatever the thread count.
@@ -77,7 +77,7 @@ pub struct GenArgs {
     /// Paths still inside after this many scattering events are recorded as
     /// zero-throughput exits [default: 64; 2048 for translucent objects,
     /// whose media scatter hundreds of times].
-    #[arg(long)]
+    #[arg(long, value_parser = crate::at_least_one::<u32>)]
     pub max_internal_bounces: Option<u32>,
     /// Output data file (written to a temporary file, renamed when complete).
     #[arg(long)]
@@ -111,15 +111,10 @@ pub struct GenArgs {
 const MAX_PLANNED_EXITS: u64 = 1 << 38;
 
 pub fn run(a: &GenArgs) -> Result<()> {
-    ensure!(a.rays >= 1, "--rays must be at least 1");
     ensure!(
         (1..=MAX_K).contains(&a.k),
         "--k must be 1 to {MAX_K} (got {})",
         a.k
-    );
-    ensure!(
-        a.max_internal_bounces != Some(0),
-        "--max-internal-bounces must be at least 1"
     );
     ensure!(
         a.max_internal_bounces

@@ -24,6 +24,23 @@ struct Cli {
     command: Command,
 }
 
+/// A count flag's value, as a clap value parser: a whole number of at least
+/// 1, so that a 0 is a usage error naming the flag (status 2), as every
+/// other malformed flag is.
+pub(crate) fn at_least_one<T>(s: &str) -> Result<T, String>
+where
+    T: std::str::FromStr + PartialOrd + From<u8>,
+{
+    let v: T = s
+        .parse()
+        .map_err(|_| format!("\"{s}\" is not a whole number"))?;
+    if v >= T::from(1) {
+        Ok(v)
+    } else {
+        Err("must be at least 1".into())
+    }
+}
+
 /// The most `--threads` per available core.
 const MAX_THREADS_PER_CORE: usize = 64;
 
@@ -31,7 +48,7 @@ const MAX_THREADS_PER_CORE: usize = 64;
 #[derive(clap::Args)]
 struct Threads {
     /// Worker threads (default: all cores).
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<usize>)]
     threads: Option<usize>,
 }
 
@@ -125,7 +142,6 @@ impl Threads {
     /// and Burn's CPU backends all run on it).
     fn install(&self) -> Result<()> {
         if let Some(t) = self.threads {
-            anyhow::ensure!(t >= 1, "--threads must be at least 1");
             // Far more threads than cores only adds scheduling (a typo of
             // 100000 took minutes to start and stop its pool).
             let cores = std::thread::available_parallelism().map_or(1, |n| n.get());

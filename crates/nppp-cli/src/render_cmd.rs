@@ -13,7 +13,7 @@ pub struct RenderArgs {
     /// Scene file (docs/scene-format.md).
     pub scene: PathBuf,
     /// Samples per pixel (overrides the scene's render.spp).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::at_least_one::<u32>)]
     pub spp: Option<u32>,
     /// Maximum number of scattering events M (overrides render.max_bounces).
     #[arg(long)]
@@ -359,7 +359,6 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     check_outputs(a, &scene)?;
     let mut settings = scene.render;
     if let Some(s) = a.spp {
-        anyhow::ensure!(s >= 1, "--spp must be at least 1");
         settings.spp = s;
     }
     if let Some(m) = a.max_bounces {
@@ -944,10 +943,17 @@ mod tests {
         st.repairs.inward = 5_000;
         assert_eq!(estimator_warnings(&st).len(), 2);
         st.repairs.vertices = 150;
-        assert_eq!(estimator_warnings(&st).len(), 2, "0.6% of vertices is normal");
+        assert_eq!(
+            estimator_warnings(&st).len(),
+            2,
+            "0.6% of vertices is normal"
+        );
         st.repairs.vertices = 25_000;
         let w = estimator_warnings(&st);
-        assert!(w.len() == 3 && w[2].contains("picked vertices (98%)"), "{w:?}");
+        assert!(
+            w.len() == 3 && w[2].contains("picked vertices (98%)"),
+            "{w:?}"
+        );
         st.entries = 0;
         assert!(estimator_warnings(&st).is_empty());
     }

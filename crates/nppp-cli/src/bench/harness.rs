@@ -203,7 +203,12 @@ pub(super) fn render_with(
 }
 
 /// Benchmarks `scene`, read from `path`.
-fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path, mut scene: nppp_scene::Scene) -> Result<SceneResult> {
+fn bench_scene(
+    a: &BenchArgs,
+    plan: &Plan,
+    path: &Path,
+    mut scene: nppp_scene::Scene,
+) -> Result<SceneResult> {
     let name = scene_name(path);
     let dir = a.out.join(&name);
     let hash = scene_hash(path, &scene)?;

@@ -90,14 +90,9 @@ impl Plan {
             plan.reference_spp >= 2,
             "--reference-spp must be at least 2 (it is rendered as two halves)"
         );
-        ensure!(plan.seeds >= 1, "--seeds must be at least 1");
         ensure!(
             plan.scale.is_finite() && plan.scale > 0.0 && plan.scale <= 4.0,
             "--scale must be in (0, 4]"
-        );
-        ensure!(
-            a.max_bounces.is_none_or(|m| m >= 1),
-            "--max-bounces must be at least 1"
         );
         Ok(plan)
     }
