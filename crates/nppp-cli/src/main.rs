@@ -195,7 +195,12 @@ fn clean_up_on_interrupt() -> Result<()> {
 /// a failure of the command).
 fn print_summary(r: &impl std::fmt::Display) -> Result<()> {
     use std::io::Write;
-    match writeln!(std::io::stdout(), "{r}") {
+    // Names and notes come from the file: escaped as notes are.
+    match writeln!(
+        std::io::stdout(),
+        "{}",
+        nppp_files::printable(&r.to_string())
+    ) {
         Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
         _ => Ok(()),
     }

@@ -33,12 +33,34 @@
 /// effort: with stderr a closed pipe (`nppp render ... 2>&1 | head -5`),
 /// `eprintln!` panicked (exit code 101) in the middle of a render, where
 /// the command should go on and finish its files.
+/// Control characters in what it prints (names and notes read from files)
+/// are escaped ([`printable`]).
 #[macro_export]
 macro_rules! note {
     ($($arg:tt)*) => {{
         use ::std::io::Write as _;
-        let _ = ::std::writeln!(::std::io::stderr(), $($arg)*);
+        let text = ::std::format!($($arg)*);
+        let _ = ::std::writeln!(::std::io::stderr(), "{}", $crate::printable(&text));
     }};
+}
+
+/// `s` with its control characters other than newline and tab escaped
+/// (`\u{1b}`): mesh names, keys and notes come from files, and a terminal
+/// would act on an escape sequence printed raw (an adversarial scene turned
+/// an error message red and rang the bell).
+pub fn printable(s: &str) -> std::borrow::Cow<'_, str> {
+    if !s.chars().any(|c| c.is_control() && c != '\n' && c != '\t') {
+        return std::borrow::Cow::Borrowed(s);
+    }
+    let mut out = String::with_capacity(s.len() + 16);
+    for c in s.chars() {
+        if c.is_control() && c != '\n' && c != '\t' {
+            out.extend(c.escape_unicode());
+        } else {
+            out.push(c);
+        }
+    }
+    std::borrow::Cow::Owned(out)
 }
 
 use std::ffi::OsString;
@@ -486,6 +508,16 @@ pub fn progress_style(template: &str, unit: &'static str) -> indicatif::Progress
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn printable_escapes_control_characters_but_newlines_and_tabs() {
+        assert!(matches!(
+            printable("plain \"knot\"\n\tnext"),
+            std::borrow::Cow::Borrowed(_)
+        ));
+        assert_eq!(printable("a\u{1b}[31mred\u{7}"), "a\\u{1b}[31mred\\u{7}");
+        assert_eq!(printable("\u{9b}x"), "\\u{9b}x");
+    }
+
     use super::*;
 
     fn scratch(name: &str) -> PathBuf {
