@@ -2162,3 +2162,47 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// bench's cached reference is its own to remake: a damaged image, NaN
+/// pixels or an impossible noise floor in it are rendered again with a
+/// note, not the end of the run (a truncated one failed the whole bench; a
+/// negative noise floor was reported as the reference's noise).
+#[test]
+fn a_damaged_cached_bench_reference_is_rendered_again() {
+    let dir = scratch("bench-cache");
+    let out = dir.join("bench");
+    let bench = || {
+        nppp([
+            "bench".as_ref(),
+            "--scenes".as_ref(),
+            file("ok_tiny.json").as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+            "--spp".as_ref(),
+            "1".as_ref(),
+            "--reference-spp".as_ref(),
+            "2".as_ref(),
+            "--seeds".as_ref(),
+            "1".as_ref(),
+            "--max-bounces".as_ref(),
+            "1".as_ref(),
+        ])
+    };
+    let o = bench();
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let (exr, json) = (out.join("ok_tiny/reference.exr"), out.join("ok_tiny/reference.json"));
+    let o = bench();
+    assert!(text(&o).contains("cached"), "{}", text(&o));
+    let good = std::fs::read(&exr).unwrap();
+    std::fs::write(&exr, &good[..100]).unwrap();
+    let o = bench();
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    assert!(text(&o).contains("is unreadable") && text(&o).contains("re-rendering"), "{}", text(&o));
+    let meta = std::fs::read_to_string(&json).unwrap();
+    let floor = meta.lines().find(|l| l.contains("noise_floor_rel_mse")).unwrap().to_string();
+    std::fs::write(&json, meta.replace(&floor, "  \"noise_floor_rel_mse\": -1.0")).unwrap();
+    let o = bench();
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    assert!(text(&o).contains("impossible noise floor"), "{}", text(&o));
+    assert!(!std::fs::read_to_string(&json).unwrap().contains("-1.0"));
+}

@@ -112,11 +112,25 @@ pub(super) fn load_or_render_reference(
     if !a.fresh_reference && exr.is_file() && json.is_file() {
         let text = nppp_files::read_regular_to_string(&json)
             .with_context(|| format!("reading {}", json.display()))?;
-        match serde_json::from_str::<ReferenceMeta>(&text) {
-            Ok(have) if have.same_settings(want) => {
-                let img = image_io::read_exr(&exr)
-                    .with_context(|| format!("reading the cached reference {}", exr.display()))?;
-                if img.width == want.width && img.height == want.height {
+        // A cache that cannot be used as it is (other settings, a damaged
+        // or edited file) is rendered again, saying why: it is ours to
+        // remake, and one bad file must not end a run of many scenes.
+        let why = match serde_json::from_str::<ReferenceMeta>(&text) {
+            Ok(have) if !have.same_settings(want) => format!("{} was made with other settings", json.display()),
+            Ok(have) if !(have.noise_floor_rel_mse.is_finite() && have.noise_floor_rel_mse >= 0.0
+                && have.seconds.is_finite() && have.seconds >= 0.0) =>
+            {
+                format!("{} records an impossible noise floor or time", json.display())
+            }
+            Ok(have) => match image_io::read_exr(&exr) {
+                Err(e) => format!("the cached {} is unreadable ({e})", exr.display()),
+                Ok(img) if img.width != want.width || img.height != want.height => {
+                    format!("{} has the wrong size", exr.display())
+                }
+                Ok(img) if img.pixels.iter().flatten().any(|v| !v.is_finite()) => {
+                    format!("{} holds NaN or infinite pixels", exr.display())
+                }
+                Ok(img) => {
                     nppp_files::note!(
                         "[{name}] reference: cached {} ({} spp, settings match)",
                         exr.display(),
@@ -124,20 +138,10 @@ pub(super) fn load_or_render_reference(
                     );
                     return Ok((img, have, true));
                 }
-                nppp_files::note!(
-                    "[{name}] reference: {} has the wrong size; re-rendering",
-                    exr.display()
-                );
-            }
-            Ok(_) => nppp_files::note!(
-                "[{name}] reference: {} was made with other settings; re-rendering",
-                json.display()
-            ),
-            Err(e) => nppp_files::note!(
-                "[{name}] reference: {} is unreadable ({e}); re-rendering",
-                json.display()
-            ),
-        }
+            },
+            Err(e) => format!("{} is unreadable ({e})", json.display()),
+        };
+        nppp_files::note!("[{name}] reference: {why}; re-rendering");
     }
     // Two independent halves: their difference estimates the reference's own noise.
     let rs_ref = rs;
