@@ -171,24 +171,46 @@ fn stop_training_on_interrupt() -> Result<()> {
             );
             nppp_nn::request_stop();
         } else {
-            nppp_files::note!("\ninterrupted");
-            nppp_files::remove_pending_temp_files();
-            std::process::exit(130);
+            exit_interrupted();
         }
     })
     .map_err(|e| anyhow::anyhow!("cannot install the interrupt handler: {e}"))
+}
+
+/// Removes the temporary files of the writes in progress (their outputs
+/// keep their old contents), names the outputs already put in place, and
+/// exits with status 130.
+fn exit_interrupted() {
+    let written = nppp_files::remove_pending_temp_files();
+    if written.is_empty() {
+        nppp_files::note!("\ninterrupted");
+    } else {
+        // The last few (a bench writes many files; the latest are what a
+        // user looks for).
+        let mut names: Vec<String> = written
+            .iter()
+            .rev()
+            .take(3)
+            .map(|p| p.display().to_string())
+            .collect();
+        names.reverse();
+        if written.len() > names.len() {
+            names.insert(0, format!("{} earlier files", written.len() - names.len()));
+        }
+        nppp_files::note!(
+            "\ninterrupted (already written: {}; any other output keeps its old contents)",
+            names.join(", ")
+        );
+    }
+    std::process::exit(130);
 }
 
 /// Ctrl-C or SIGTERM in any other command: the files being written keep
 /// their old contents (every write is atomic) and their temporary files are
 /// removed, then the command exits with status 130.
 fn clean_up_on_interrupt() -> Result<()> {
-    ctrlc::set_handler(|| {
-        nppp_files::note!("\ninterrupted");
-        nppp_files::remove_pending_temp_files();
-        std::process::exit(130);
-    })
-    .map_err(|e| anyhow::anyhow!("cannot install the interrupt handler: {e}"))
+    ctrlc::set_handler(exit_interrupted)
+        .map_err(|e| anyhow::anyhow!("cannot install the interrupt handler: {e}"))
 }
 
 /// A command's summary on stdout (a closed pipe is the reader's choice, not

@@ -1089,6 +1089,64 @@ fn interrupted_render_keeps_the_previous_output() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A render stopped by SIGTERM while it puts its outputs in place says
+/// which ones are new: an output it does not name keeps its old contents
+/// (one in four such runs exited 130, "interrupted", with both files
+/// already replaced).
+#[test]
+fn a_render_stopped_while_writing_names_what_it_had_written() {
+    let dir = scratch("interrupted-writing");
+    let (out, png) = (dir.join("big.exr"), dir.join("big.png"));
+    let scene = file("ok_tiny.json");
+    let args: Vec<&OsStr> = vec![
+        "render".as_ref(),
+        scene.as_os_str(),
+        "--quiet".as_ref(),
+        "--width".as_ref(),
+        "1536".as_ref(),
+        "--spp".as_ref(),
+        "1".as_ref(),
+        "--out".as_ref(),
+        out.as_os_str(),
+        "--png".as_ref(),
+        png.as_os_str(),
+    ];
+    let t0 = std::time::Instant::now();
+    let o = nppp(&args);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let whole = t0.elapsed();
+    for k in 0..16u32 {
+        std::fs::write(&out, PREVIOUS).unwrap();
+        std::fs::write(&png, PREVIOUS).unwrap();
+        let child = Command::new(env!("CARGO_BIN_EXE_nppp"))
+            .args(&args)
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // From half the render's time to a little past its end: the
+        // signal lands before, during and after the writes.
+        std::thread::sleep(whole.mul_f64(0.5 + 0.04 * f64::from(k)));
+        let _ = Command::new("kill")
+            .args(["-TERM", &child.id().to_string()])
+            .status();
+        let o = child.wait_with_output().unwrap();
+        let err = text(&o);
+        assert!(!err.contains("panicked"), "{err}");
+        let new = |p: &Path| std::fs::read(p).unwrap() != PREVIOUS;
+        match o.status.code() {
+            Some(0) => assert!(new(&out) && new(&png), "{err}"),
+            Some(130) => {
+                assert_eq!(new(&out), err.contains("big.exr"), "EXR: {err}");
+                assert_eq!(new(&png), err.contains("big.png"), "PNG: {err}");
+            }
+            c => panic!("exit {c:?}: {err}"),
+        }
+        let names = names_in(&dir);
+        assert_eq!(names, ["big.exr", "big.png"], "files left behind: {err}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Positive controls: the valid scenes render, replace the previous output
 /// with a finite EXR, and leave no temporary file. The tiny estimator has
 /// random decoder weights (its exits are nonsense) and the 3e38 lamp
@@ -2190,17 +2248,32 @@ fn a_damaged_cached_bench_reference_is_rendered_again() {
     };
     let o = bench();
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
-    let (exr, json) = (out.join("ok_tiny/reference.exr"), out.join("ok_tiny/reference.json"));
+    let (exr, json) = (
+        out.join("ok_tiny/reference.exr"),
+        out.join("ok_tiny/reference.json"),
+    );
     let o = bench();
     assert!(text(&o).contains("cached"), "{}", text(&o));
     let good = std::fs::read(&exr).unwrap();
     std::fs::write(&exr, &good[..100]).unwrap();
     let o = bench();
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
-    assert!(text(&o).contains("is unreadable") && text(&o).contains("re-rendering"), "{}", text(&o));
+    assert!(
+        text(&o).contains("is unreadable") && text(&o).contains("re-rendering"),
+        "{}",
+        text(&o)
+    );
     let meta = std::fs::read_to_string(&json).unwrap();
-    let floor = meta.lines().find(|l| l.contains("noise_floor_rel_mse")).unwrap().to_string();
-    std::fs::write(&json, meta.replace(&floor, "  \"noise_floor_rel_mse\": -1.0")).unwrap();
+    let floor = meta
+        .lines()
+        .find(|l| l.contains("noise_floor_rel_mse"))
+        .unwrap()
+        .to_string();
+    std::fs::write(
+        &json,
+        meta.replace(&floor, "  \"noise_floor_rel_mse\": -1.0"),
+    )
+    .unwrap();
     let o = bench();
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
     assert!(text(&o).contains("impossible noise floor"), "{}", text(&o));

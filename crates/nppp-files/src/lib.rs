@@ -90,13 +90,41 @@ fn untrack(tmp: &Path) {
     }
 }
 
+/// The outputs this process has put in place so far (for the message of a
+/// command stopped by a signal: those are new, every other keeps its old
+/// contents).
+static WRITTEN: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// Renames `tmp` onto `path` and stops tracking it, as one step against a
+/// signal handler's [`remove_pending_temp_files`]: a signal either finds the
+/// temporary file pending and deletes it (the output keeps its old
+/// contents) or finds the output in place and says so. Without the lock a
+/// signal during the rename reported old contents for a file already new.
+fn rename_into_place(tmp: &Path, path: &Path) -> io::Result<()> {
+    let mut list = pending();
+    std::fs::rename(tmp, path)?;
+    if let Some(i) = list.iter().rposition(|p| p == tmp) {
+        list.swap_remove(i);
+    }
+    WRITTEN
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .push(path.to_path_buf());
+    Ok(())
+}
+
 /// Deletes the temporary file of every write still in progress; for a
 /// signal handler about to end the process (the targets keep their old
-/// contents, as after a kill).
-pub fn remove_pending_temp_files() {
-    for tmp in pending().drain(..) {
+/// contents, as after a kill). Returns the outputs already put in place
+/// before it ran.
+pub fn remove_pending_temp_files() -> Vec<PathBuf> {
+    let mut list = pending();
+    for tmp in list.drain(..) {
         let _ = std::fs::remove_file(tmp);
     }
+    // Held until the process exits: no rename completes after this.
+    std::mem::forget(list);
+    WRITTEN.lock().unwrap_or_else(|e| e.into_inner()).clone()
 }
 
 /// The environment variable that names a crash point (tests only).
@@ -217,7 +245,7 @@ impl AtomicFile {
             file.sync_all()?;
             drop(file);
             crash_point(&format!("before-rename:{}", file_label(&self.path)));
-            std::fs::rename(&self.tmp, &self.path)?;
+            rename_into_place(&self.tmp, &self.path)?;
             sync_parent(&self.path);
             Ok(())
         })();
@@ -288,7 +316,7 @@ pub fn write_atomic_via_path<E: std::fmt::Display>(
         write(&tmp).map_err(|e| io::Error::other(e.to_string()))?;
         File::open(&tmp)?.sync_all()?;
         crash_point(&format!("before-rename:{}", file_label(path)));
-        std::fs::rename(&tmp, path)?;
+        rename_into_place(&tmp, path)?;
         sync_parent(path);
         Ok(())
     })();

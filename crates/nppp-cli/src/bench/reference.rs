@@ -116,11 +116,19 @@ pub(super) fn load_or_render_reference(
         // or edited file) is rendered again, saying why: it is ours to
         // remake, and one bad file must not end a run of many scenes.
         let why = match serde_json::from_str::<ReferenceMeta>(&text) {
-            Ok(have) if !have.same_settings(want) => format!("{} was made with other settings", json.display()),
-            Ok(have) if !(have.noise_floor_rel_mse.is_finite() && have.noise_floor_rel_mse >= 0.0
-                && have.seconds.is_finite() && have.seconds >= 0.0) =>
+            Ok(have) if !have.same_settings(want) => {
+                format!("{} was made with other settings", json.display())
+            }
+            Ok(have)
+                if !(have.noise_floor_rel_mse.is_finite()
+                    && have.noise_floor_rel_mse >= 0.0
+                    && have.seconds.is_finite()
+                    && have.seconds >= 0.0) =>
             {
-                format!("{} records an impossible noise floor or time", json.display())
+                format!(
+                    "{} records an impossible noise floor or time",
+                    json.display()
+                )
             }
             Ok(have) => match image_io::read_exr(&exr) {
                 Err(e) => format!("the cached {} is unreadable ({e})", exr.display()),
