@@ -186,8 +186,27 @@ pub fn read_regular_to_string(path: &Path) -> io::Result<String> {
 /// `dir/.name.<pid>.tmp`: in the target's own folder (a rename must not
 /// cross filesystems), hidden, and unique per process.
 pub fn temp_path(path: &Path) -> PathBuf {
+    let file = path.file_name().unwrap_or_else(|| "out".as_ref());
     let mut name = OsString::from(".");
-    name.push(path.file_name().unwrap_or_else(|| "out".as_ref()));
+    // A name near the file system's 255-byte limit would not fit with the
+    // temporary suffix (a valid 254-character --out failed with "File name
+    // too long"): such a name is cut, and a hash of the whole keeps the
+    // temporary names of two long outputs apart.
+    const KEEP: usize = 200;
+    let bytes = file.as_encoded_bytes();
+    if bytes.len() > KEEP {
+        let text = file.to_string_lossy();
+        let mut cut = KEEP;
+        while !text.is_char_boundary(cut.min(text.len())) {
+            cut -= 1;
+        }
+        let hash = bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+            (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3)
+        });
+        name.push(format!("{}.{hash:016x}", &text[..cut.min(text.len())]));
+    } else {
+        name.push(file);
+    }
     name.push(format!(".{}.tmp", std::process::id()));
     path.with_file_name(name)
 }
@@ -536,6 +555,31 @@ pub fn progress_style(template: &str, unit: &'static str) -> indicatif::Progress
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
+    #[test]
+    fn temporary_names_of_long_outputs_fit_the_file_system() {
+        let long = "x".repeat(254) + ".exr";
+        let t = temp_path(&Path::new("/tmp").join(&long));
+        let name = t.file_name().unwrap().to_string_lossy().into_owned();
+        assert!(
+            name.len() <= 255 && name.starts_with('.') && name.ends_with(".tmp"),
+            "{name}"
+        );
+        let other = temp_path(&Path::new("/tmp").join("x".repeat(254) + ".png"));
+        assert_ne!(t, other);
+        let short = temp_path(Path::new("/tmp/out.exr"));
+        assert_eq!(
+            short.file_name().unwrap().to_string_lossy(),
+            format!(".out.exr.{}.tmp", std::process::id())
+        );
+        let dir = scratch("long-name");
+        let p = dir.join("é".repeat(120) + ".txt");
+        write_atomic(&p, b"ok").unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), b"ok");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     #[test]
     fn printable_escapes_control_characters_but_newlines_and_tabs() {
         assert!(matches!(
@@ -545,8 +589,6 @@ mod tests {
         assert_eq!(printable("a\u{1b}[31mred\u{7}"), "a\\u{1b}[31mred\\u{7}");
         assert_eq!(printable("\u{9b}x"), "\\u{9b}x");
     }
-
-    use super::*;
 
     fn scratch(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("nppp-files-{}-{name}", std::process::id()));

@@ -302,9 +302,14 @@ pub fn load_weights(ckpt: &Checkpoint, device: &Device) -> Result<NpppModel> {
         let record =
             burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes))
                 .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))?;
-        fresh
-            .try_load_record(record)
-            .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))
+        fresh.try_load_record(record).map_err(|e| {
+            anyhow::anyhow!(
+                "loading {}: its weights do not fit the network {} describes (the model \
+                 directory was edited or mixed from two runs; retrain it): {e}",
+                path.display(),
+                files::TRAIN_CONFIG
+            )
+        })
     })
 }
 
@@ -490,9 +495,9 @@ fn write_checkpoint_tmp(
     state: &TrainState,
 ) -> Result<Vec<(&'static str, String)>> {
     if tmp.exists() {
-        fs::remove_dir_all(&tmp).with_context(|| format!("removing {}", tmp.display()))?;
+        fs::remove_dir_all(tmp).with_context(|| format!("removing {}", tmp.display()))?;
     }
-    fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    fs::create_dir_all(tmp).with_context(|| format!("creating {}", tmp.display()))?;
     let w = tmp.join(files::WEIGHTS);
     c.model
         .clone()
@@ -515,7 +520,7 @@ fn write_checkpoint_tmp(
     state.version = STATE_VERSION;
     state.files = files::IN_CHECKPOINT
         .iter()
-        .map(|n| FileSum::of(&tmp, n))
+        .map(|n| FileSum::of(tmp, n))
         .collect::<Result<_>>()?;
     let sp = tmp.join(files::STATE);
     nppp_files::write_atomic(&sp, serde_json::to_string_pretty(&state)?.as_bytes())
