@@ -828,7 +828,21 @@ fn absurd_flags_are_rejected_before_rendering() {
     // says (`render --spp 0` and `gen --rays 0` exited 1).
     let data = file("data_valid.nppd");
     let tail = dir.join("never-written");
-    for args in [
+    let gen_zero = |flag: &'static str| -> Vec<&OsStr> {
+        vec![
+            "gen".as_ref(),
+            "--scene".as_ref(),
+            scene.as_os_str(),
+            "--instance".as_ref(),
+            "0".as_ref(),
+            flag.as_ref(),
+            "0".as_ref(),
+            "--out".as_ref(),
+            tail.as_os_str(),
+        ]
+    };
+    let gens = ["--rays", "--k", "--max-internal-bounces"].map(gen_zero);
+    for args in gens.into_iter().chain([
         vec![
             "render".as_ref(),
             scene.as_os_str(),
@@ -836,39 +850,6 @@ fn absurd_flags_are_rejected_before_rendering() {
             "0".as_ref(),
             "--out".as_ref(),
             out.as_os_str(),
-        ],
-        vec![
-            "gen".as_ref(),
-            "--scene".as_ref(),
-            scene.as_os_str(),
-            "--instance".as_ref(),
-            "0".as_ref(),
-            "--rays".as_ref(),
-            "0".as_ref(),
-            "--out".as_ref(),
-            tail.as_os_str(),
-        ],
-        vec![
-            "gen".as_ref(),
-            "--scene".as_ref(),
-            scene.as_os_str(),
-            "--instance".as_ref(),
-            "0".as_ref(),
-            "--k".as_ref(),
-            "0".as_ref(),
-            "--out".as_ref(),
-            tail.as_os_str(),
-        ],
-        vec![
-            "gen".as_ref(),
-            "--scene".as_ref(),
-            scene.as_os_str(),
-            "--instance".as_ref(),
-            "0".as_ref(),
-            "--max-internal-bounces".as_ref(),
-            "0".as_ref(),
-            "--out".as_ref(),
-            tail.as_os_str(),
         ],
         vec![
             "bench".as_ref(),
@@ -897,7 +878,7 @@ fn absurd_flags_are_rejected_before_rendering() {
             "--threads".as_ref(),
             "0".as_ref(),
         ],
-    ] {
+    ]) {
         let what: Vec<String> = args
             .iter()
             .map(|a: &&OsStr| a.to_string_lossy().into_owned())
