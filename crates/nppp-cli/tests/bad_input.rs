@@ -2136,13 +2136,16 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
         b.join("x.json").display()
     );
     let out = dir.join("bench-out");
-    let o = nppp([
-        "bench".as_ref(),
-        "--scenes".as_ref(),
-        scenes.as_ref(),
-        "--out".as_ref(),
-        out.as_os_str(),
-    ]);
+    let bench = |scenes: &str| {
+        nppp([
+            "bench".as_ref(),
+            "--scenes".as_ref(),
+            scenes.as_ref(),
+            "--out".as_ref(),
+            out.as_os_str(),
+        ])
+    };
+    let o = bench(&scenes);
     assert_clean_error("bench, one name twice", &o, &["have the same file name"]);
     assert!(!out.exists(), "bench created --out before refusing");
     // A bad scene after a good one is refused before the good one's
@@ -2155,14 +2158,7 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
             .replacen("{", "{\"bogus\": 1, ", 1),
     )
     .unwrap();
-    let scenes = format!("{},{}", a.join("x.json").display(), bad.display());
-    let o = nppp([
-        "bench".as_ref(),
-        "--scenes".as_ref(),
-        scenes.as_ref(),
-        "--out".as_ref(),
-        out.as_os_str(),
-    ]);
+    let o = bench(&format!("{},{}", a.join("x.json").display(), bad.display()));
     assert_clean_error("bench, a bad second scene", &o, &["bad.json", "bogus"]);
     assert!(!out.exists(), "bench began before checking every scene");
 
