@@ -33,6 +33,7 @@
 /// effort: with stderr a closed pipe (`nppp render ... 2>&1 | head -5`),
 /// `eprintln!` panicked (exit code 101) in the middle of a render, where
 /// the command should go on and finish its files.
+///
 /// Control characters in what it prints (names and notes read from files)
 /// are escaped ([`printable`]).
 #[macro_export]
