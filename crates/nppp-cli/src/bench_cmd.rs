@@ -33,7 +33,7 @@ pub struct BenchArgs {
     #[arg(long, value_delimiter = ',', value_parser = crate::at_least_one::<u32>)]
     pub spp: Option<Vec<u32>>,
     /// Samples per pixel of the reference.
-    #[arg(long)]
+    #[arg(long, value_parser = crate::at_least_one::<u32>)]
     pub reference_spp: Option<u32>,
     /// Resolution factor applied to each scene's camera (quick: 0.5, full: 1).
     #[arg(long)]

@@ -31,9 +31,13 @@ pub(crate) fn at_least_one<T>(s: &str) -> Result<T, String>
 where
     T: std::str::FromStr + PartialOrd + From<u8>,
 {
-    let v: T = s
-        .parse()
-        .map_err(|_| format!("\"{s}\" is not a whole number"))?;
+    let v: T = s.parse().map_err(|_| {
+        if s.trim().parse::<u128>().is_ok() {
+            format!("{s} is too large")
+        } else {
+            format!("\"{s}\" is not a whole number")
+        }
+    })?;
     if v >= T::from(1) {
         Ok(v)
     } else {

@@ -56,10 +56,10 @@ pub struct RenderArgs {
     #[arg(long, conflicts_with_all = ["width", "height"])]
     pub scale: Option<f64>,
     /// Image width in pixels (alone: the height follows the aspect ratio).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::at_least_one::<u32>)]
     pub width: Option<u32>,
     /// Image height in pixels (alone: the width follows the aspect ratio).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::at_least_one::<u32>)]
     pub height: Option<u32>,
     /// P: use estimators once a path has made at least this many bounces
     /// (overrides render.estimator_min_bounces).

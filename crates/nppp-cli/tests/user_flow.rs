@@ -357,12 +357,23 @@ fn image_size_flags_override_the_camera() {
     for (flags, needle) in [
         (&["--scale", "0"][..], "--scale"),
         (&["--scale", "nan"][..], "--scale"),
-        (&["--width", "0"][..], "--width"),
-        (&["--height", "0"][..], "--height"),
         (&["--scale", "1e6"][..], "pixels"),
     ] {
         let o = nppp(render_args(&scene, &out, None, flags));
         assert_refused(&format!("{flags:?}"), &o, 1, &[needle]);
+    }
+    // A count of 0 is the parser's usage error (status 2), naming the flag.
+    for (flags, needle) in [
+        (&["--width", "0"][..], "--width"),
+        (&["--height", "0"][..], "--height"),
+    ] {
+        let o = nppp(render_args(&scene, &out, None, flags));
+        assert_refused(
+            &format!("{flags:?}"),
+            &o,
+            2,
+            &[needle, "must be at least 1"],
+        );
     }
     // --scale with --width or --height is a usage error (the parser's: 2).
     for flags in [

@@ -80,8 +80,15 @@ fn pending() -> MutexGuard<'static, Vec<PathBuf>> {
     PENDING.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-fn track(tmp: &Path) {
-    pending().push(tmp.to_path_buf());
+/// Creates (or truncates) the temporary file `tmp` and tracks it, as one
+/// step against a signal handler's [`remove_pending_temp_files`]: a file
+/// created outside the lock could appear just after the handler's cleanup
+/// and stay behind.
+fn create_tracked(tmp: &Path) -> io::Result<File> {
+    let mut list = pending();
+    let file = File::create(tmp)?;
+    list.push(tmp.to_path_buf());
+    Ok(file)
 }
 
 fn untrack(tmp: &Path) {
@@ -107,10 +114,16 @@ fn rename_into_place(tmp: &Path, path: &Path) -> io::Result<()> {
     if let Some(i) = list.iter().rposition(|p| p == tmp) {
         list.swap_remove(i);
     }
-    WRITTEN
-        .lock()
-        .unwrap_or_else(|e| e.into_inner())
-        .push(path.to_path_buf());
+    // Outputs only: a file inside a folder still being assembled (a
+    // checkpoint's `checkpoint.tmp/`) is not in place yet; and each once.
+    let staged = path
+        .parent()
+        .and_then(Path::file_name)
+        .is_some_and(|d| d.to_string_lossy().ends_with(".tmp"));
+    let mut written = WRITTEN.lock().unwrap_or_else(|e| e.into_inner());
+    if !staged && !written.iter().any(|p| p == path) {
+        written.push(path.to_path_buf());
+    }
     Ok(())
 }
 
@@ -240,8 +253,7 @@ impl AtomicFile {
             ));
         }
         let tmp = temp_path(path);
-        let file = File::create(&tmp)?;
-        track(&tmp);
+        let file = create_tracked(&tmp)?;
         Ok(Self {
             path: path.to_path_buf(),
             tmp,
@@ -331,7 +343,8 @@ pub fn write_atomic_via_path<E: std::fmt::Display>(
         ));
     }
     let tmp = temp_path(path);
-    track(&tmp);
+    // Created here, under the handler's lock; the writer truncates it.
+    drop(create_tracked(&tmp)?);
     let result = (|| {
         write(&tmp).map_err(|e| io::Error::other(e.to_string()))?;
         File::open(&tmp)?.sync_all()?;

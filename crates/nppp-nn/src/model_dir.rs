@@ -373,6 +373,17 @@ fn checkpoint_lock(dir: &Path, exclusive: bool) -> Result<Option<fs::File>> {
     Ok(Some(f))
 }
 
+/// The shared checkpoint lock of a model directory for a reader of its
+/// checkpoint (`bake`, `train --resume`): held while it reads, a training
+/// run writing the folder cannot swap a checkpoint in under it. A folder
+/// without a checkpoint gets no lock file (it is not a model, or not yet).
+pub fn checkpoint_read_lock(dir: &Path) -> Result<Option<fs::File>> {
+    match checkpoint_dir(dir) {
+        Some(_) => checkpoint_lock(dir, false),
+        None => Ok(None),
+    }
+}
+
 /// Takes the model directory for this process (creating it if needed): two
 /// runs writing one directory would interleave their checkpoints. The lock
 /// is the OS's (`flock`), so a killed run never leaves a stale one.
@@ -579,7 +590,7 @@ pub fn load_model_dir(dir: &Path, device: &Device) -> Result<LoadedModel> {
         bail!("model directory {} does not exist", dir.display());
     }
     // A training run may be swapping a checkpoint in: read one whole.
-    let lock = checkpoint_lock(dir, false)?;
+    let lock = checkpoint_read_lock(dir)?;
     let ckpt = open_checkpoint(dir)?
         .with_context(|| format!("{} holds no checkpoint (train first)", dir.display()))?;
     let device = device.clone().without_autodiff();

@@ -283,6 +283,21 @@ fn corrupt_checkpoint_is_an_error_not_a_panic() {
         .err()
         .unwrap();
     assert!(err.to_string().contains("does not exist"), "{err}");
+    // A folder that is not a model gets no lock file from being read.
+    let plain = tmp("not-a-model");
+    fs::create_dir_all(&plain).unwrap();
+    let err = nppp_nn::load_model_dir(&plain, &BackendKind::Ndarray.device().unwrap())
+        .err()
+        .unwrap();
+    assert!(
+        format!("{err:#}").contains("holds no checkpoint"),
+        "{err:#}"
+    );
+    assert_eq!(
+        fs::read_dir(&plain).unwrap().count(),
+        0,
+        "reading it wrote into it"
+    );
 }
 
 /// The saved configuration says what ran: a file with fewer exits per ray

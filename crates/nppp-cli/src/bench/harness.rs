@@ -94,12 +94,13 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
             a.out.display()
         );
     }
-    // Every scene is read and checked before any is benchmarked: a bad
-    // second scene used to end the run after the first's hours of renders.
-    let scenes: Vec<nppp_scene::Scene> = paths
-        .iter()
-        .map(|p| nppp_scene::load_scene(p).with_context(|| format!("benchmarking {}", p.display())))
-        .collect::<Result<_>>()?;
+    // Every scene is read and checked (at the bench's resolution) before
+    // any is benchmarked: a bad second scene used to end the run after the
+    // first's hours of renders. Each is read again when its turn comes, so
+    // that only one scene's meshes are in memory at a time.
+    for p in &paths {
+        load_for_bench(p, &plan).with_context(|| format!("benchmarking {}", p.display()))?;
+    }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let machine = Machine::probe();
     nppp_files::note!(
@@ -114,27 +115,33 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
     );
     let t0 = Instant::now();
     let mut results = Vec::new();
-    let md_path = a.out.join("results.md");
-    let csv_path = a.out.join("results.csv");
-    let write_reports = |results: &[SceneResult]| -> Result<()> {
+    let write_reports = |results: &[SceneResult], stem: &str| -> Result<(PathBuf, PathBuf)> {
+        let (md_path, csv_path) = (
+            a.out.join(format!("{stem}.md")),
+            a.out.join(format!("{stem}.csv")),
+        );
         let md = report_markdown(a, &plan, &machine, results, t0.elapsed().as_secs_f64());
         image_io::write_text(&md_path, &md)
             .with_context(|| format!("writing {}", md_path.display()))?;
         image_io::write_text(&csv_path, &report_csv(results))
             .with_context(|| format!("writing {}", csv_path.display()))?;
-        Ok(())
+        Ok((md_path, csv_path))
     };
-    for (path, scene) in paths.iter().zip(scenes) {
-        match bench_scene(a, &plan, path, scene) {
+    for path in &paths {
+        match bench_scene(a, &plan, path) {
             Ok(r) => results.push(r),
             Err(e) => {
-                // What finished is kept: the scenes before this one.
-                if !results.is_empty() && write_reports(&results).is_ok() {
+                // What finished is kept, beside (not over) the reports of
+                // an earlier complete run in the same --out.
+                if !results.is_empty()
+                    && let Ok((md, csv)) = write_reports(&results, "results.partial")
+                {
                     nppp_files::note!(
-                        "bench stopped; the {} scene(s) benchmarked before are in {} and {}",
+                        "bench stopped at {}; the {} scene(s) benchmarked before it are in {} and {}",
+                        path.display(),
                         results.len(),
-                        md_path.display(),
-                        csv_path.display()
+                        md.display(),
+                        csv.display()
                     );
                 }
                 return Err(e.context(format!("benchmarking {}", path.display())));
@@ -142,7 +149,7 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
         }
     }
     let total = t0.elapsed().as_secs_f64();
-    write_reports(&results)?;
+    let (md_path, csv_path) = write_reports(&results, "results")?;
     let mut plots = Vec::new();
     for r in &results {
         plots.extend(plot_scene(r, &a.out)?);
@@ -202,20 +209,22 @@ pub(super) fn render_with(
     )
 }
 
-/// Benchmarks `scene`, read from `path`.
-fn bench_scene(
-    a: &BenchArgs,
-    plan: &Plan,
-    path: &Path,
-    mut scene: nppp_scene::Scene,
-) -> Result<SceneResult> {
-    let name = scene_name(path);
-    let dir = a.out.join(&name);
-    let hash = scene_hash(path, &scene)?;
+/// The scene at `path` as the bench renders it: read, checked and resized
+/// to the plan's resolution.
+fn load_for_bench(path: &Path, plan: &Plan) -> Result<nppp_scene::Scene> {
+    let mut scene = nppp_scene::load_scene(path)?;
     scene
         .camera
         .resize(Some(plan.scale), None, None)
         .map_err(anyhow::Error::msg)?;
+    Ok(scene)
+}
+
+fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
+    let name = scene_name(path);
+    let dir = a.out.join(&name);
+    let scene = load_for_bench(path, plan)?;
+    let hash = scene_hash(path, &scene)?;
     // Only once the scene is known good: a bad one left an empty folder.
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let (width, height) = (scene.camera.width, scene.camera.height);

@@ -17,7 +17,8 @@ use crate::features::INPUT_FEATURES;
 use crate::io::DatasetInfo;
 use crate::model::ModelConfig;
 use crate::model_dir::{
-    Checkpoint, DataFingerprint, check_fresh_out, checkpoint_dir, open_checkpoint,
+    Checkpoint, DataFingerprint, check_fresh_out, checkpoint_dir, checkpoint_read_lock,
+    open_checkpoint,
 };
 
 /// What `nppp train` was asked for (the CLI's flags, `nppp-cli`'s `TrainArgs`,
@@ -336,6 +337,9 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
                 opts.out.display()
             );
         }
+        // Another run may be swapping a checkpoint in (this one has not
+        // taken the folder yet): read one whole.
+        let _lock = checkpoint_read_lock(&opts.out).context("--resume")?;
         let c = open_checkpoint(&opts.out)
             .context("--resume")?
             .with_context(|| {

@@ -879,7 +879,12 @@ fn paired_difference_variance(a: &Image, b: &Image, pa: &Image, pb: &Image) -> f
 /// difference where measured, else of the two means) and
 /// [`PilotOptions::bias_tolerance`].
 fn score(pt: &Trial, t: &mut Trial, opts: &PilotOptions) {
-    let noise = 4.0 * t.paired_diff_var.min(t.mean_var + pt.mean_var).sqrt();
+    let var = if t.paired_diff_var.is_finite() {
+        t.paired_diff_var
+    } else {
+        t.mean_var + pt.mean_var
+    };
+    let noise = 4.0 * var.sqrt();
     t.biased = (t.mean - pt.mean).abs() > noise + opts.bias_tolerance * pt.mean.abs();
     t.efficiency = if t.biased {
         0.0
