@@ -508,7 +508,12 @@ impl Decision {
                         "{name}: off, best {:.2}x PT's efficiency (tried {tried})",
                         b.efficiency
                     ),
-                    _ => format!("{name}: off"),
+                    // No candidate: P, from the smallest auto tries for
+                    // this object (PilotOptions), reaches no bounce below M.
+                    _ => format!(
+                        "{name}: off (no P that auto tries is below M; objects that take light \
+                         samples are tried from P = 2: --estimators neural --min-bounces sets P)"
+                    ),
                 }
             })
             .collect()
