@@ -357,7 +357,16 @@ fn image_size_flags_override_the_camera() {
     for (flags, needle) in [
         (&["--scale", "0"][..], "--scale"),
         (&["--scale", "nan"][..], "--scale"),
-        (&["--scale", "1e6"][..], "pixels"),
+        (
+            &["--scale", "1e6"][..],
+            "--scale 1000000: the image would be",
+        ),
+        // A huge factor in e-notation, not 300 digits.
+        (&["--scale", "1e300"][..], "1.600e301 pixels wide"),
+        (
+            &["--height", "16384"][..],
+            "--height 16384: the image would be 32768 pixels wide (16x8",
+        ),
     ] {
         let o = nppp(render_args(&scene, &out, None, flags));
         assert_refused(&format!("{flags:?}"), &o, 1, &[needle]);

@@ -50,12 +50,28 @@ impl Camera {
             (None, Some(w), Some(h)) => (w as f64, h as f64),
             (None, None, None) => return Ok(()),
         };
+        // The flag that made the image too large, named in the error.
+        let given = match (scale, width, height) {
+            (Some(s), _, _) => format!("--scale {s}"),
+            (None, Some(w), None) => format!("--width {w}"),
+            (None, None, Some(h)) => format!("--height {h}"),
+            (None, Some(w), Some(h)) => format!("--width {w} --height {h}"),
+            (None, None, None) => String::new(),
+        };
+        let (w_scene, h_scene) = (self.width, self.height);
         let side = |x: f64, what: &str| -> Result<u32, String> {
             let r = x.round().max(1.0);
             if r > max as f64 {
+                // Exact up to 1e15, then in e-notation (--scale 1e300 printed
+                // a 300-digit width).
+                let r = if r < 1e15 {
+                    format!("{r}")
+                } else {
+                    format!("{r:.3e}")
+                };
                 return Err(format!(
-                    "the image would be {} pixels {what}; images are 1 to {max} pixels on a side",
-                    r
+                    "{given}: the image would be {r} pixels {what} ({}x{} in the scene); images are 1 to {max} pixels on a side",
+                    w_scene, h_scene
                 ));
             }
             Ok(r as u32)
