@@ -110,6 +110,10 @@ pub struct GenArgs {
 /// traced until the disk filled.
 const MAX_PLANNED_EXITS: u64 = 1 << 38;
 
+/// The fewest input rays a run projects the full recipe's size and time
+/// from.
+const MIN_RAYS_TO_PROJECT: u64 = 1000;
+
 pub fn run(a: &GenArgs) -> Result<()> {
     ensure!(
         (1..=MAX_K).contains(&a.k),
@@ -300,7 +304,14 @@ pub fn run(a: &GenArgs) -> Result<()> {
             st.repaired_exits
         );
     }
-    if st.exits > 0 {
+    // From a few hundred rays the hit fraction and the rate are noise (a
+    // one-ray shard projected 11,459 minutes): no projection then.
+    if st.rays < MIN_RAYS_TO_PROJECT {
+        crate::print_summary(&format_args!(
+            "  projection  none: {} rays are too few to project from (at least {MIN_RAYS_TO_PROJECT})",
+            st.rays
+        ))?;
+    } else if st.exits > 0 {
         let exits = THESIS_RAYS as f64 * st.hit_fraction() * THESIS_K as f64;
         crate::print_summary(&format_args!(
             "  projection  {THESIS_RAYS} rays x k = {THESIS_K}: {:.1} M exits, {} and {:.1} min at this rate",
