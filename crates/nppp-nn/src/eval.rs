@@ -268,7 +268,8 @@ pub struct HeldoutMetrics {
     /// (not relative) when the object emits nothing.
     pub radiance_error: f64,
     pub radiance_bias: f64,
-    /// Mean real throughput luminance over the scored rays (the denominator).
+    /// Mean real throughput luminance over the scored rays (the denominator;
+    /// 1 instead where it is below 1e-6).
     pub mean_throughput: f64,
     /// The vertex head's scores (a model and data with picked vertices).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -386,11 +387,20 @@ pub fn evaluate(
     m.chamfer /= nf;
     m.energy /= nf;
     m.mean_throughput = tp_real / nf;
-    let denom = tp_real.max(1e-12);
+    // An object that returns (almost) no light, an emitter's data: the
+    // errors relative to a throughput of 1 per ray, as the radiance's below
+    // are absolute for an object that emits nothing (relative to its ~0
+    // mean they read billions of percent).
+    let per_ray = if m.mean_throughput > 1e-6 {
+        m.mean_throughput
+    } else {
+        1.0
+    };
+    let denom = per_ray * nf;
     m.throughput_error = tp_abs / denom;
     m.throughput_bias = tp_signed / denom;
     m.throughput_noise_floor = tp_floor / denom;
-    m.throughput_rms_error = (tp_excess_sq / nf).max(0.0).sqrt() / m.mean_throughput.max(1e-12);
+    m.throughput_rms_error = (tp_excess_sq / nf).max(0.0).sqrt() / per_ray;
     // A non-emissive object: report the absolute stray radiance per ray.
     let rd_denom = if rd_real > 1e-9 { rd_real } else { nf };
     m.radiance_error = rd_abs / rd_denom;

@@ -350,3 +350,33 @@ fn the_log_has_rows_every_n_steps_and_evaluations_at_intervals() {
         assert!(loss.is_finite() && loss > 0.0, "{r:?}");
     }
 }
+
+/// An object that returns no light (an emitter's data: every exit's
+/// throughput 0) scores its throughput errors against a throughput of 1,
+/// not against its ~0 mean (they read billions of percent).
+#[test]
+fn an_object_that_returns_no_light_scores_finite_errors() {
+    let mut rays = SyntheticObject::Mirror { radius: 0.6 }.rays(300, 4, 11);
+    for r in &mut rays {
+        for e in &mut r.exits {
+            e.throughput = glam::Vec3::ZERO;
+        }
+    }
+    let data = TrainingData::build(rays, 4, 10).unwrap();
+    let dir = tmp("no-light");
+    let rep = train_with_data(
+        &opts(&dir).tap_epochs(1),
+        synthetic_header("mirror", 4),
+        data,
+    )
+    .unwrap();
+    let m = rep.metrics.unwrap();
+    assert!(m.mean_throughput < 1e-6, "{m:?}");
+    for v in [
+        m.throughput_error,
+        m.throughput_rms_error,
+        m.throughput_bias.abs(),
+    ] {
+        assert!(v.is_finite() && v < 10.0, "{m:?}");
+    }
+}
