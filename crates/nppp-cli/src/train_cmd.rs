@@ -60,15 +60,15 @@ pub struct TrainArgs {
     pub backend: BackendArg,
     /// Length of the run in optimizer steps (default 24000: about 12 minutes
     /// on 2 cores); the learning-rate schedule follows it.
-    #[arg(long, conflicts_with = "epochs", value_parser = steps_at_least_one)]
+    #[arg(long, conflicts_with = "epochs", value_parser = crate::at_least_one::<u64>)]
     pub steps: Option<u64>,
     /// Length of the run in epochs (one epoch = one pass over the training
     /// hit rays), instead of --steps.
-    #[arg(long, value_parser = at_least_one)]
+    #[arg(long, value_parser = crate::at_least_one::<usize>)]
     pub epochs: Option<usize>,
     /// Stop once this many steps are done in total, as if interrupted: the
     /// schedule still follows the run's length, and --resume continues it.
-    #[arg(long, value_parser = steps_at_least_one)]
+    #[arg(long, value_parser = crate::at_least_one::<u64>)]
     pub stop_after: Option<u64>,
     /// Training-time budget of this invocation in minutes (0 = none). Once
     /// 300 steps are timed, a run that would not fit is shortened so that it
@@ -85,13 +85,13 @@ pub struct TrainArgs {
     #[arg(long)]
     pub overwrite: bool,
     /// Input rays per step (hits, for the Chamfer term).
-    #[arg(long, value_parser = at_least_one)]
+    #[arg(long, value_parser = crate::at_least_one::<usize>)]
     pub batch: Option<usize>,
     /// Exits per ray per step (a random subset of the file's k).
-    #[arg(long, value_parser = at_least_one)]
+    #[arg(long, value_parser = crate::at_least_one::<usize>)]
     pub k: Option<usize>,
     /// Rays (hits and misses) per step for the mask term.
-    #[arg(long, value_parser = at_least_one)]
+    #[arg(long, value_parser = crate::at_least_one::<usize>)]
     pub mask_batch: Option<usize>,
     /// Adam learning rate.
     #[arg(long, value_parser = positive_rate)]
@@ -107,10 +107,10 @@ pub struct TrainArgs {
     #[arg(long, value_parser = at_least_two)]
     pub holdout_every: Option<usize>,
     /// Steps per epoch (default: one pass over the training hit rays).
-    #[arg(long, value_parser = at_least_one)]
+    #[arg(long, value_parser = crate::at_least_one::<usize>)]
     pub steps_per_epoch: Option<usize>,
     /// Held-out hit rays scored at the end of every epoch.
-    #[arg(long, value_parser = at_least_one)]
+    #[arg(long, value_parser = crate::at_least_one::<usize>)]
     pub eval_rays: Option<usize>,
     /// Latent size (z); the baked grid stores this many channels.
     #[arg(long, value_parser = network_size)]
@@ -164,17 +164,6 @@ fn count_in(s: &str, range: std::ops::RangeInclusive<usize>) -> Result<usize, St
 /// flag's name (it named the config key) before any data is read.
 fn network_size(s: &str) -> Result<usize, String> {
     count_in(s, 1..=nppp_nn::model::MAX_LAYER_SIZE)
-}
-
-/// A count that 0 would make meaningless (no held-out rays scored reads as a
-/// perfect score of 0).
-fn at_least_one(s: &str) -> Result<usize, String> {
-    count_in(s, 1..=usize::MAX)
-}
-
-/// A step count: 0 steps would train nothing and save no checkpoint.
-fn steps_at_least_one(s: &str) -> Result<u64, String> {
-    count_in(s, 1..=usize::MAX).map(|v| v as u64)
 }
 
 /// `--holdout-every`: every n-th ray held out, so n = 1 would hold out all.
@@ -257,7 +246,8 @@ pub struct BakeArgs {
     #[arg(long)]
     pub no_eval: bool,
     /// Held-out hit rays scored.
-    #[arg(long, default_value_t = 512, value_parser = at_least_one)]
+    // At least 1: no ray scored would read as a perfect score of 0.
+    #[arg(long, default_value_t = 512, value_parser = crate::at_least_one::<usize>)]
     pub eval_rays: usize,
     /// No progress bars.
     #[arg(long)]
