@@ -124,11 +124,11 @@ impl Estimator {
     /// vertex found on the real mesh; off where its object takes no light
     /// sample (delta lobes: smooth glass).
     pub fn light_sampling_entry_nee(&self) -> EntryNee {
-        match (self.takes_light_samples(), self.has_vertex_head()) {
-            (true, true) => EntryNee::PickedVertex,
-            (true, false) => EntryNee::FirstVertex,
-            (false, _) => EntryNee::Off,
-        }
+        self.applicable_entry_nee(if self.has_vertex_head() {
+            EntryNee::PickedVertex
+        } else {
+            EntryNee::FirstVertex
+        })
     }
 }
 
