@@ -323,6 +323,12 @@ pub fn load_optimizer(ckpt: &Checkpoint, optim: ModuleOptimizer) -> Result<Modul
     })
 }
 
+/// Whether `name`, in a model directory, is something `nppp train` writes:
+/// one of [`files::ALL`] or a hidden temporary file of an atomic write.
+fn written_by_train(name: &str) -> bool {
+    files::ALL.contains(&name) || (name.starts_with('.') && name.ends_with(".tmp"))
+}
+
 /// Whether a fresh run may write into `out`: it does not exist, is empty,
 /// or holds nothing but what `nppp train` writes (so a user's own folder is
 /// never filled with, or stripped of, files).
@@ -339,8 +345,7 @@ pub fn check_fresh_out(out: &Path) -> Result<()> {
     let entries = fs::read_dir(out).with_context(|| format!("reading {}", out.display()))?;
     for e in entries {
         let name = e?.file_name().to_string_lossy().into_owned();
-        let ours = files::ALL.contains(&name.as_str())
-            || (name.starts_with('.') && name.ends_with(".tmp"));
+        let ours = written_by_train(&name);
         if !ours {
             bail!(
                 "--out {} holds {name:?}, which `nppp train` did not write: it is not a model \
@@ -433,11 +438,9 @@ impl Drop for ModelDirLock {
         }
         // Only what `nppp train` writes: the folder is this run's own.
         let ours = fs::read_dir(&self.dir).is_ok_and(|entries| {
-            entries.filter_map(|e| e.ok()).all(|e| {
-                let name = e.file_name().to_string_lossy().into_owned();
-                files::ALL.contains(&name.as_str())
-                    || (name.starts_with('.') && name.ends_with(".tmp"))
-            })
+            entries
+                .filter_map(|e| e.ok())
+                .all(|e| written_by_train(&e.file_name().to_string_lossy()))
         });
         if ours {
             let _ = fs::remove_dir_all(&self.dir);
