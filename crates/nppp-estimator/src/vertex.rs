@@ -10,11 +10,14 @@
 //! divided by the probability of the pick. One light sample there estimates
 //! the direct light of every skipped vertex at once, unbiased over picks.
 //!
-//! The vertex is a marginal sample: the vertex head draws it with its own
-//! noise, independent of the exit. That is enough for the light sample's
-//! expectation (a sum over vertices); it rules out MIS against the exit's
-//! emitter hit, so the renderer counts the light at skipped vertices by
-//! light sampling alone (see `nppp-render`'s `EntryNee::PickedVertex`).
+//! The vertex is a marginal sample: the vertex head has learned the
+//! distribution of picked vertices alone, not jointly with the exit. That is
+//! enough for the light sample's expectation (a sum over vertices), whatever
+//! noise drives the head (the renderer reuses the exit's:
+//! `EstimatorSampler::sample_vertices_from_exit_noise`); it rules out MIS
+//! against the exit's emitter hit, so the renderer counts the light at
+//! skipped vertices by light sampling alone (see `nppp-render`'s
+//! `EntryNee::PickedVertex`).
 
 use crate::exit::{fit_mean_std, safe_normalize, standardize};
 use glam::Vec3;

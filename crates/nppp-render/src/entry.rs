@@ -106,18 +106,15 @@ impl EntryBatch {
                         self.exits[i] = *exit;
                     }
                     // Picked-vertex NEE: the vertex head on the same rows
-                    // (their latents), with its own noise from each path.
+                    // (their latents and their exits' noise).
                     if let (true, SurfaceKind::Scatter(bsdf)) =
                         (est.entry_nee.is_picked(), est.surface)
                     {
-                        let noise = |k: usize, r: &mut [f32]| {
-                            paths[entries[rows[k]].0].rng.fill_normals(r);
-                        };
-                        if let Some(verts) =
-                            sampler.sample_vertices(&mut self.decode, noise, &mut stats.repairs)
+                        if let Some(verts) = sampler
+                            .sample_vertices_from_exit_noise(&mut self.decode, &mut stats.repairs)
                         {
                             let macs = sampler.vertex_multiply_adds().unwrap_or(0);
-                            stats.count_decoder_rows(verts.len(), macs, sampler.noise_dim());
+                            stats.count_decoder_rows(verts.len(), macs, 0);
                             for (&i, v) in rows.iter().zip(verts) {
                                 let depth = paths[self.entries[i].0].depth;
                                 let budget = max_bounces.saturating_sub(depth);

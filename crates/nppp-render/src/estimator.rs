@@ -319,9 +319,11 @@ pub enum EntryNee {
     FirstVertex,
     /// One vertex of the skipped path, picked in proportion to its
     /// throughput. The oracle weights its light sample by MIS against the
-    /// last vertex's BSDF sample (the exit ray's emitter hit). A network
-    /// draws the vertex from its vertex head, independently of the exit, so
-    /// there is no last vertex to weight against: the light sample counts
+    /// last vertex's BSDF sample (the exit ray's emitter hit). A network's
+    /// vertex head has learned the picked vertex's distribution alone, not
+    /// jointly with the exit (it runs on the exit's noise, which its
+    /// expectation does not depend on), so there is no last vertex to weight
+    /// against: the light sample counts
     /// alone and the exit's emitter hit counts 0 (as [`Self::PickedVertexLightOnly`]).
     /// Needs the oracle or an estimator file with a vertex head.
     PickedVertex,
