@@ -633,6 +633,12 @@ impl Estimators {
                         chord,
                     } => {
                         let od = unit_ray.dir;
+                        // Something closer hides the sphere: nothing to ask.
+                        let to_world = est.sphere.radius * x.scale;
+                        let (t_in, t_out) = (chord.t_in * to_world, chord.t_out * to_world);
+                        if t_in >= tmax {
+                            return f32::INFINITY;
+                        }
                         // A ray that misses every box under the mesh's BVH root
                         // certainly misses the mesh: no mask lookup (two memory
                         // misses in an 8 MiB grid) for what geometry already
@@ -645,11 +651,6 @@ impl Estimators {
                         let pair = SpherePair::from_points(entry_p, unit_ray.at(chord.t_out));
                         if !self.mask_hits(est, accel, &Ray::new(entry_p, od), &pair) {
                             stats.mask_skips += 1;
-                            return f32::INFINITY;
-                        }
-                        let to_world = est.sphere.radius * x.scale;
-                        let (t_in, t_out) = (chord.t_in * to_world, chord.t_out * to_world);
-                        if t_in >= tmax {
                             return f32::INFINITY;
                         }
                         if let Some(c) = &cand
