@@ -109,17 +109,15 @@ impl EntryBatch {
                     // (their latents and their exits' noise).
                     if let (true, SurfaceKind::Scatter(bsdf)) =
                         (est.entry_nee.is_picked(), est.surface)
-                    {
-                        if let Some(verts) = sampler
+                        && let Some(verts) = sampler
                             .sample_vertices_from_exit_noise(&mut self.decode, &mut stats.repairs)
-                        {
-                            let macs = sampler.vertex_multiply_adds().unwrap_or(0);
-                            stats.count_decoder_rows(verts.len(), macs, 0);
-                            for (&i, v) in rows.iter().zip(verts) {
-                                let depth = paths[self.entries[i].0].depth;
-                                let budget = max_bounces.saturating_sub(depth);
-                                self.skipped[i] = network_skipped(v, &est.sphere, bsdf, budget);
-                            }
+                    {
+                        let macs = sampler.vertex_multiply_adds().unwrap_or(0);
+                        stats.count_decoder_rows(verts.len(), macs, 0);
+                        for (&i, v) in rows.iter().zip(verts) {
+                            let depth = paths[self.entries[i].0].depth;
+                            let budget = max_bounces.saturating_sub(depth);
+                            self.skipped[i] = network_skipped(v, &est.sphere, bsdf, budget);
                         }
                     }
                     let max_b = sampler.meta().max_internal_bounces;

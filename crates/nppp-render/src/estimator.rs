@@ -212,7 +212,8 @@ impl WorldSphere {
         if dist2 < r2_in {
             return Some(WorldEntry::Inside);
         }
-        if !(dist2 > r2_out) {
+        // Also NaN.
+        if dist2.partial_cmp(&r2_out) != Some(std::cmp::Ordering::Greater) {
             return None;
         }
         let b = oc.dot(d);
