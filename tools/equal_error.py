@@ -74,15 +74,28 @@ def main():
     common += shlex.split(a.common)
     tmp = tempfile.mkdtemp(prefix="nppp-equal-error-")
     reference = a.reference or str(Path(tmp) / "reference.exr")
-    if not Path(reference).exists():
-        print(f"reference: PT at {a.reference_spp} spp -> {reference}", file=sys.stderr)
-        render(a.nppp, a.scene, a.reference_spp, 1000, ["--estimators", "off"] + common,
-               None, reference)
     configs = [("PT", ["--estimators", "off"])] + [(l, shlex.split(f)) for l, f in a.config]
     times = {l: [] for l, _ in configs}
     errs = {l: [] for l, _ in configs}
     means = {l: [] for l, _ in configs}
     out = str(Path(tmp) / "img.exr")
+    try:
+        if not Path(reference).exists():
+            print(f"reference: PT at {a.reference_spp} spp -> {reference}", file=sys.stderr)
+            render(a.nppp, a.scene, a.reference_spp, 1000, ["--estimators", "off"] + common,
+                   None, reference)
+        measure(a, configs, scene_for, common, reference, out, times, errs, means)
+    finally:
+        # The working image goes; a reference rendered here stays (the
+        # table names it, for the next run's --reference).
+        Path(out).unlink(missing_ok=True)
+        if not any(Path(tmp).iterdir()):
+            Path(tmp).rmdir()
+    report(a, configs, reference, times, errs, means)
+
+
+def measure(a, configs, scene_for, common, reference, out, times, errs, means):
+    """Renders every configuration in alternating rounds into the lists."""
     for rnd in range(1, a.rounds + 1):
         for label, flags in configs:
             scene = scene_for.get(label, a.scene)
@@ -92,6 +105,10 @@ def main():
             means[label].append(m)
             print(f"round {rnd} {label:>24}: {t:7.3f} s  relMSE {r:.5f}  mean {m:.5f}",
                   file=sys.stderr)
+
+
+def report(a, configs, reference, times, errs, means):
+    """The Markdown table of the measured rounds."""
     t_pt = statistics.median(times["PT"])
     e_pt = statistics.mean(errs["PT"])
     m_pt = statistics.mean(means["PT"])

@@ -131,14 +131,15 @@ def main():
     args = ap.parse_args()
     scenes = SCENES if not args.scene else [(f, c.split(), n) for f, c, n in args.scene]
 
-    out = str(Path(tempfile.mkdtemp(prefix="nppp-fit-cost-")) / "render.exr")
     runs = {}
-    for rnd in range(1, args.rounds + 1):
-        for scene, common, nee in scenes:
-            for label, flags in configs(nee):
-                t, x = render(args.nppp, scene, args.spp, rnd, common + flags, out)
-                runs.setdefault((scene, label), []).append((t, x))
-                print(f"round {rnd} {Path(scene).stem:>14} {label:>14}: {t:.3f} s", file=sys.stderr)
+    with tempfile.TemporaryDirectory(prefix="nppp-fit-cost-") as tmp:
+        out = str(Path(tmp) / "render.exr")
+        for rnd in range(1, args.rounds + 1):
+            for scene, common, nee in scenes:
+                for label, flags in configs(nee):
+                    t, x = render(args.nppp, scene, args.spp, rnd, common + flags, out)
+                    runs.setdefault((scene, label), []).append((t, x))
+                    print(f"round {rnd} {Path(scene).stem:>14} {label:>14}: {t:.3f} s", file=sys.stderr)
 
     rows = []
     for key, rs in runs.items():

@@ -35,7 +35,7 @@ fn file(name: &str) -> PathBuf {
 }
 
 /// A fresh, empty folder for one case.
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("bad-input", name)
 }
 
@@ -1738,7 +1738,7 @@ fn special_files_are_refused_as_inputs() {
     );
     let o = nppp(["info".as_ref(), zero.as_os_str()]);
     assert_clean_error("info /dev/zero", &o, &["/dev/zero", "not a regular file"]);
-    for (part, needle) in [(zero, "a device"), (dir.as_path(), "a folder")] {
+    for (part, needle) in [(zero, "a device"), (&*dir, "a folder")] {
         let o = nppp([
             "merge".as_ref(),
             part.as_os_str(),

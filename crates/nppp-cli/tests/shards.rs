@@ -17,7 +17,7 @@ fn repo(rel: &str) -> PathBuf {
         .join(rel)
 }
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("shards", name)
 }
 

@@ -16,7 +16,7 @@ use std::process::{Command, Output};
 mod common;
 use common::{SMALL_TRAIN_FLAGS, nppp, nppp_env, stderr};
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("train-files", name)
 }
 

@@ -17,7 +17,7 @@ fn file(name: &str) -> PathBuf {
         .join(name)
 }
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("user-flow", name)
 }
 
