@@ -511,13 +511,106 @@ pub fn crash_point(name: &str) {
     }
 }
 
-/// Bytes of memory the system can still give this process (Linux'
-/// `MemAvailable`; `None` where it cannot be read).
+/// Bytes of memory the system can still give this process: the least of
+/// Linux' `MemAvailable`, the room left under the memory limit of each
+/// control group the process is in (a container's limit: `MemAvailable`
+/// counts the whole host's memory), and the room left in its address space
+/// limit (`ulimit -v`). `None` where none of these can be read.
 pub fn available_memory() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let read = |p: &str| std::fs::read_to_string(p).ok();
+    let mut least = read("/proc/meminfo").and_then(|t| meminfo_available(&t));
+    if let Some(groups) = read("/proc/self/cgroup") {
+        for dir in cgroup_memory_dirs(&groups) {
+            // Every ancestor's limit applies too.
+            let mut d = dir.as_path();
+            loop {
+                let room = cgroup_room(
+                    read(&d.join("memory.max").to_string_lossy())
+                        .or_else(|| read(&d.join("memory.limit_in_bytes").to_string_lossy())),
+                    read(&d.join("memory.current").to_string_lossy())
+                        .or_else(|| read(&d.join("memory.usage_in_bytes").to_string_lossy())),
+                );
+                least = min_known(least, room);
+                match d.parent() {
+                    Some(parent) if parent.starts_with("/sys/fs/cgroup") && parent != d => {
+                        d = parent
+                    }
+                    _ => break,
+                }
+            }
+        }
+    }
+    if let (Some(limits), Some(status)) = (read("/proc/self/limits"), read("/proc/self/status")) {
+        least = min_known(least, address_space_room(&limits, &status));
+    }
+    least
+}
+
+fn min_known(a: Option<u64>, b: Option<u64>) -> Option<u64> {
+    match (a, b) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
+    }
+}
+
+/// `MemAvailable` of `/proc/meminfo`'s text, in bytes.
+fn meminfo_available(meminfo: &str) -> Option<u64> {
+    let line = meminfo.lines().find(|l| l.starts_with("MemAvailable:"))?;
     let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     kib.checked_mul(1024)
+}
+
+/// The memory control groups' folders named by `/proc/self/cgroup`'s text:
+/// version 2's `0::/path` under `/sys/fs/cgroup`, version 1's
+/// `N:memory:/path` under `/sys/fs/cgroup/memory`.
+fn cgroup_memory_dirs(cgroup: &str) -> Vec<std::path::PathBuf> {
+    let root = std::path::Path::new("/sys/fs/cgroup");
+    cgroup
+        .lines()
+        .filter_map(|l| {
+            let mut parts = l.splitn(3, ':');
+            let (_, controllers, path) = (parts.next()?, parts.next()?, parts.next()?);
+            let rel = path.trim_start_matches('/');
+            if rel.split('/').any(|c| c == "..") {
+                return None;
+            }
+            match controllers {
+                "" => Some(root.join(rel)),
+                c if c.split(',').any(|c| c == "memory") => Some(root.join("memory").join(rel)),
+                _ => None,
+            }
+        })
+        .collect()
+}
+
+/// The room under a control group's limit (`memory.max` or
+/// `memory.limit_in_bytes`) given its usage; `None` without a limit ("max",
+/// or version 1's near-2^63 "unlimited") or where either cannot be read.
+fn cgroup_room(limit: Option<String>, usage: Option<String>) -> Option<u64> {
+    let limit: u64 = limit?.trim().parse().ok()?;
+    if limit >= 1 << 62 {
+        return None;
+    }
+    let usage: u64 = usage?.trim().parse().ok()?;
+    Some(limit.saturating_sub(usage))
+}
+
+/// The room left under the address space limit (`/proc/self/limits`'
+/// "Max address space", soft) given the process' size (`/proc/self/status`'
+/// `VmSize`); `None` when unlimited or unreadable.
+fn address_space_room(limits: &str, status: &str) -> Option<u64> {
+    let line = limits
+        .lines()
+        .find(|l| l.starts_with("Max address space"))?;
+    let soft: u64 = line
+        .trim_start_matches("Max address space")
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    let size = status.lines().find(|l| l.starts_with("VmSize:"))?;
+    let kib: u64 = size.split_whitespace().nth(1)?.parse().ok()?;
+    Some(soft.saturating_sub(kib.saturating_mul(1024)))
 }
 
 /// A byte count for people: `512 B`, `1.50 KiB`, `16.04 MiB`, `8.00 GiB`.
@@ -737,5 +830,55 @@ mod tests {
         if cfg!(target_os = "linux") {
             assert!(available_memory().unwrap() > 1 << 20);
         }
+    }
+
+    /// Each source of the available memory is read from its text, and the
+    /// least one counts: a container's limit below the host's free memory,
+    /// `ulimit -v`.
+    #[test]
+    fn available_memory_takes_the_tightest_limit() {
+        assert_eq!(
+            meminfo_available("MemTotal: 100 kB\nMemAvailable:    2048 kB\n"),
+            Some(2 << 20)
+        );
+        assert_eq!(meminfo_available("MemTotal: 100 kB\n"), None);
+        let dirs = cgroup_memory_dirs(
+            "12:pids:/a\n4:memory:/process_api/x\n0::/user.slice/s\n3:cpu,memory:/b\n1:memory:/../etc\n",
+        );
+        let want: Vec<PathBuf> = [
+            "/sys/fs/cgroup/memory/process_api/x",
+            "/sys/fs/cgroup/user.slice/s",
+            "/sys/fs/cgroup/memory/b",
+        ]
+        .iter()
+        .map(PathBuf::from)
+        .collect();
+        assert_eq!(dirs, want);
+        assert_eq!(cgroup_room(Some("max\n".into()), Some("5\n".into())), None);
+        assert_eq!(
+            cgroup_room(Some("9223372036854771712\n".into()), Some("5".into())),
+            None
+        );
+        assert_eq!(
+            cgroup_room(Some("1000\n".into()), Some("300\n".into())),
+            Some(700)
+        );
+        assert_eq!(
+            cgroup_room(Some("1000".into()), Some("3000".into())),
+            Some(0)
+        );
+        assert_eq!(cgroup_room(Some("1000".into()), None), None);
+        let limits = "Limit                     Soft Limit           Hard Limit           Units\n\
+                      Max address space         1073741824           unlimited            bytes\n";
+        assert_eq!(
+            address_space_room(limits, "Name: nppp\nVmSize:\t  262144 kB\n"),
+            Some(768 << 20)
+        );
+        let unlimited =
+            "Max address space         unlimited            unlimited            bytes\n";
+        assert_eq!(address_space_room(unlimited, "VmSize: 1 kB\n"), None);
+        assert_eq!(min_known(Some(3), Some(2)), Some(2));
+        assert_eq!(min_known(None, Some(2)), Some(2));
+        assert_eq!(min_known(None, None), None);
     }
 }

@@ -1441,3 +1441,37 @@ fn sizes_beyond_32_bit_float_geometry() {
         "mean free path",
     );
 }
+
+// ---------------------------------------------------------------- memory
+
+/// A scene whose meshes, each within the per-mesh limit, would not fit in
+/// memory together is refused before any mesh is built (here 1,000 knots
+/// of 10-15 M triangles: 5 TB to render), naming the largest.
+#[test]
+fn geometry_beyond_the_memory_available_is_refused_before_building() {
+    if nppp_files::available_memory().is_none() {
+        return;
+    }
+    let start = std::time::Instant::now();
+    let err = expect_error(
+        |v| {
+            let meshes = obj_of(v, &["meshes"]);
+            for k in 0..1000 {
+                meshes.insert(
+                    format!("knot{k:04}"),
+                    json!({"procedural": {"type": "torus_knot", "segments": 2000 + k, "sides": 2500}}),
+                );
+            }
+        },
+        "meshes",
+        "of memory available",
+    );
+    let msg = err.to_string();
+    assert!(
+        msg.contains("the largest meshes.knot0999 with 14995000"),
+        "{msg}"
+    );
+    assert!(msg.contains("about 400 bytes a triangle"), "{msg}");
+    // Nothing was built: a 20 M-triangle knot alone takes seconds.
+    assert!(start.elapsed().as_secs_f64() < 5.0, "{:?}", start.elapsed());
+}

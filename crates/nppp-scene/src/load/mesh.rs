@@ -187,8 +187,60 @@ impl Cx<'_> {
         parse_obj(&text, smooth).map_err(|e| obj_err(e.line, e.message))
     }
 
+    /// How many triangles the mesh at `v` will have, where that is known
+    /// without building it (the built-in shapes and procedural objects; not
+    /// an OBJ) and `v` is valid (else the build reports the error).
+    pub(super) fn predicted_triangles(&self, v: &Json, path: &str) -> Option<u64> {
+        let f = self.object(v, path, MESH_KEYS).ok()?;
+        if f.get("quad").is_some() {
+            Some(2)
+        } else if f.get("box").is_some() {
+            Some(12)
+        } else if let Some((iv, ip)) = f.get("icosphere") {
+            let f = self
+                .object(iv, &ip, &["center", "radius", "subdivisions"])
+                .ok()?;
+            let (sv, sp) = f.get("subdivisions")?;
+            let n = self
+                .u32_in(sv, &sp, 0, MAX_ICOSPHERE_SUBDIVISIONS, "")
+                .ok()?;
+            Some(20 * 4u64.pow(n))
+        } else if let Some((pv, pp)) = f.get("procedural") {
+            // One that will not build says why itself, naming its parameter.
+            let proc = self.procedural_spec(pv, &pp).ok()?;
+            proc.validate().ok()?;
+            Some(proc.triangle_count()).filter(|&t| t <= crate::procedural::MAX_TRIANGLES)
+        } else {
+            None
+        }
+    }
+
     fn procedural(&self, v: &Json, path: &str) -> Res<Mesh> {
-        let (entries, ty) = self.typed_object(v, path)?;
+        let (entries, _) = self.typed_object(v, path)?;
+        let proc = self.procedural_spec(v, path)?;
+        let mesh = proc.build().map_err(|e| {
+            // Point at the parameter when the generator names one of ours.
+            let key = match &e {
+                ProceduralError::InvalidParameter { parameter, .. }
+                    if entries.iter().any(|(k, _)| k == parameter) =>
+                {
+                    join_key(path, parameter)
+                }
+                _ => path.to_string(),
+            };
+            self.invalid(&key, e.to_string())
+        })?;
+        Ok(Mesh {
+            positions: mesh.positions,
+            triangles: mesh.triangles,
+            shading_normals: None,
+        })
+    }
+
+    /// The procedural object `v` describes (its parameters checked, the
+    /// project's standard object's values where one is missing), not built.
+    fn procedural_spec(&self, v: &Json, path: &str) -> Res<Procedural> {
+        let (_, ty) = self.typed_object(v, path)?;
         let type_path = join_key(path, "type");
         // Missing parameters take the values of the project's standard
         // object of that kind, so `{"type": "torus_knot"}` is the usual knot.
@@ -215,7 +267,7 @@ impl Cx<'_> {
                 None => Ok(default),
             }
         };
-        let proc = match standard {
+        Ok(match standard {
             Procedural::DisplacedSphere {
                 subdivisions,
                 amplitude,
@@ -263,23 +315,6 @@ impl Cx<'_> {
                     level: u32_param(&f, "level", level)?,
                 }
             }
-        };
-        let mesh = proc.build().map_err(|e| {
-            // Point at the parameter when the generator names one of ours.
-            let key = match &e {
-                ProceduralError::InvalidParameter { parameter, .. }
-                    if entries.iter().any(|(k, _)| k == parameter) =>
-                {
-                    join_key(path, parameter)
-                }
-                _ => path.to_string(),
-            };
-            self.invalid(&key, e.to_string())
-        })?;
-        Ok(Mesh {
-            positions: mesh.positions,
-            triangles: mesh.triangles,
-            shading_normals: None,
         })
     }
 }

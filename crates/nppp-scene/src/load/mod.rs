@@ -8,6 +8,7 @@
 
 use crate::error::SceneError;
 use crate::json::{self, Json, Num, join_index, join_key};
+use crate::procedural::count_text;
 use crate::{Camera, Instance, Material, Mesh, RenderSettings, Scene, Transform};
 use glam::{DQuat, DVec3, Vec3};
 use std::collections::HashMap;
@@ -36,6 +37,13 @@ pub const MIN_WORLD_SIZE: f64 = 1e-9;
 /// scaled to 2e-4 at x = 278 spans 7; its shape is gone, and building its
 /// tree took minutes).
 pub const MIN_FLOAT_STEPS: f64 = 8.0;
+
+/// Memory a render holds per triangle of the scene's meshes: the mesh, its
+/// BVH, and the world-space copies that merge the meshes used once into one
+/// tree (and a second layout when estimators are in use). Measured peak
+/// resident memory of `nppp render`: 330-340 bytes a triangle with one to
+/// four icospheres of 1.3 M triangles; rounded up.
+pub const RENDER_BYTES_PER_TRIANGLE: u64 = 400;
 
 /// What makes an object spanning `lo..hi` (world space) too small for
 /// 32-bit float geometry, if anything: its size ([`MIN_WORLD_SIZE`]), the
@@ -396,10 +404,7 @@ impl Cx<'_> {
             let (v, p) = top.req(self, "instances")?;
             self.instances(v, &p, &mesh_names, &material_names)?
         };
-        let meshes = mesh_values
-            .iter()
-            .map(|(name, v)| self.mesh(v, &join_key(&mesh_path, name)))
-            .collect::<Res<Vec<Mesh>>>()?;
+        let meshes = self.meshes_within_memory(mesh_values, &mesh_path)?;
         self.check_world_extent(
             &camera,
             &meshes,
@@ -437,6 +442,63 @@ impl Cx<'_> {
             instances,
             render,
         })
+    }
+
+    /// Builds the meshes, refusing a scene whose geometry would not fit in
+    /// the memory available to render it ([`RENDER_BYTES_PER_TRIANGLE`])
+    /// with a message instead of an allocation failure: first from the
+    /// triangle counts known without building (shapes and procedural
+    /// objects), before any mesh is made, then as each OBJ is read.
+    fn meshes_within_memory(&self, entries: &[(String, Json)], path: &str) -> Res<Vec<Mesh>> {
+        let available = nppp_files::available_memory();
+        let keys: Vec<String> = entries
+            .iter()
+            .map(|(name, _)| join_key(path, name))
+            .collect();
+        let predicted: Vec<u64> = entries
+            .iter()
+            .zip(&keys)
+            .map(|((_, v), key)| self.predicted_triangles(v, key).unwrap_or(0))
+            .collect();
+        let too_much = |triangles: u64| {
+            available.filter(|&a| triangles.saturating_mul(RENDER_BYTES_PER_TRIANGLE) > a)
+        };
+        let message = |triangles: u64, available: u64, largest: &str| {
+            format!(
+                "the scene's meshes have {} triangles{largest}; rendering them takes about {} \
+                 (about {RENDER_BYTES_PER_TRIANGLE} bytes a triangle), more than the {} of memory \
+                 available: use fewer or coarser meshes (instances of one mesh share its triangles)",
+                count_text(triangles),
+                nppp_files::format_bytes(triangles.saturating_mul(RENDER_BYTES_PER_TRIANGLE)),
+                nppp_files::format_bytes(available)
+            )
+        };
+        let mut remaining: u64 = predicted.iter().fold(0, |a, &b| a.saturating_add(b));
+        if let Some(a) = too_much(remaining) {
+            let (k, &most) = predicted
+                .iter()
+                .enumerate()
+                .max_by_key(|(_, t)| **t)
+                .unwrap_or((0, &0));
+            let largest = format!(", the largest {} with {}", keys[k], count_text(most));
+            return Err(self.invalid(path, message(remaining, a, &largest)));
+        }
+        let mut meshes = Vec::with_capacity(entries.len());
+        let mut built: u64 = 0;
+        for (((_, v), key), &guess) in entries.iter().zip(&keys).zip(&predicted) {
+            let mesh = self.mesh(v, key)?;
+            built = built.saturating_add(mesh.triangles.len() as u64);
+            remaining -= guess;
+            if let Some(a) = too_much(built.saturating_add(remaining)) {
+                let this = format!(
+                    ", {} of them in this one",
+                    count_text(mesh.triangles.len() as u64)
+                );
+                return Err(self.invalid(key, message(built.saturating_add(remaining), a, &this)));
+            }
+            meshes.push(mesh);
+        }
+        Ok(meshes)
     }
 
     /// A translucent material's medium is "inside" its mesh: the mesh must

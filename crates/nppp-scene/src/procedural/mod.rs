@@ -179,7 +179,7 @@ impl Procedural {
         })
     }
 
-    fn validate(&self) -> Result<(), ProceduralError> {
+    pub(crate) fn validate(&self) -> Result<(), ProceduralError> {
         let invalid = |parameter, value: String, reason: &str| {
             Err(ProceduralError::InvalidParameter {
                 parameter,
@@ -700,7 +700,7 @@ pub fn write_obj(mesh: &TriMesh, path: &Path) -> std::io::Result<()> {
 
 /// A triangle count for an error message: the saturated count of absurd
 /// parameters is not a number anyone asked for.
-fn count_text(n: u64) -> String {
+pub(crate) fn count_text(n: u64) -> String {
     if n == u64::MAX {
         "more than 1.8e19".to_owned()
     } else {
