@@ -498,6 +498,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
              with --min-bounces / --entry-nee to set them"
         );
     }
+    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene) {
+        bail!("{}: {problem}", a.scene.display());
+    }
     let mut rs = RenderScene::with_estimators(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;
     for line in nppp_render::estimator_overlap::describe_all(&rs.obstructed, &scene) {

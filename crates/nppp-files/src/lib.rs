@@ -529,6 +529,7 @@ pub fn available_memory() -> Option<u64> {
                         .or_else(|| read(&d.join("memory.limit_in_bytes").to_string_lossy())),
                     read(&d.join("memory.current").to_string_lossy())
                         .or_else(|| read(&d.join("memory.usage_in_bytes").to_string_lossy())),
+                    read(&d.join("memory.stat").to_string_lossy()),
                 );
                 least = min_known(least, room);
                 match d.parent() {
@@ -584,15 +585,31 @@ fn cgroup_memory_dirs(cgroup: &str) -> Vec<std::path::PathBuf> {
 }
 
 /// The room under a control group's limit (`memory.max` or
-/// `memory.limit_in_bytes`) given its usage; `None` without a limit ("max",
-/// or version 1's near-2^63 "unlimited") or where either cannot be read.
-fn cgroup_room(limit: Option<String>, usage: Option<String>) -> Option<u64> {
+/// `memory.limit_in_bytes`) given its usage, less the inactive file cache
+/// its `memory.stat` counts (the kernel reclaims it when needed, and a
+/// container that reads files sits near its limit with it: the working set
+/// as the kubelet computes it); `None` without a limit ("max", or version
+/// 1's near-2^63 "unlimited") or where limit or usage cannot be read.
+fn cgroup_room(limit: Option<String>, usage: Option<String>, stat: Option<String>) -> Option<u64> {
     let limit: u64 = limit?.trim().parse().ok()?;
     if limit >= 1 << 62 {
         return None;
     }
     let usage: u64 = usage?.trim().parse().ok()?;
-    Some(limit.saturating_sub(usage))
+    // Version 2 says `inactive_file`, version 1 `total_inactive_file`
+    // (with the group's descendants) beside its own `inactive_file`.
+    let inactive = |key: &str| {
+        stat.as_deref()?.lines().find_map(|l| {
+            let mut parts = l.split_whitespace();
+            (parts.next()? == key)
+                .then(|| parts.next()?.parse::<u64>().ok())
+                .flatten()
+        })
+    };
+    let cache = inactive("total_inactive_file")
+        .or_else(|| inactive("inactive_file"))
+        .unwrap_or(0);
+    Some(limit.saturating_sub(usage.saturating_sub(cache)))
 }
 
 /// The room left under the address space limit (`/proc/self/limits`'
@@ -854,20 +871,47 @@ mod tests {
         .map(PathBuf::from)
         .collect();
         assert_eq!(dirs, want);
-        assert_eq!(cgroup_room(Some("max\n".into()), Some("5\n".into())), None);
         assert_eq!(
-            cgroup_room(Some("9223372036854771712\n".into()), Some("5".into())),
+            cgroup_room(Some("max\n".into()), Some("5\n".into()), None),
             None
         );
         assert_eq!(
-            cgroup_room(Some("1000\n".into()), Some("300\n".into())),
+            cgroup_room(Some("9223372036854771712\n".into()), Some("5".into()), None),
+            None
+        );
+        assert_eq!(
+            cgroup_room(Some("1000\n".into()), Some("300\n".into()), None),
             Some(700)
         );
         assert_eq!(
-            cgroup_room(Some("1000".into()), Some("3000".into())),
+            cgroup_room(Some("1000".into()), Some("3000".into()), None),
             Some(0)
         );
-        assert_eq!(cgroup_room(Some("1000".into()), None), None);
+        assert_eq!(cgroup_room(Some("1000".into()), None, None), None);
+        // A group at its limit with file cache the kernel can drop still has
+        // that cache's room (v2, then v1 with its hierarchy's total).
+        let v2 = "anon 100\nfile 900\nactive_file 200\ninactive_file 700\n";
+        assert_eq!(
+            cgroup_room(Some("1000".into()), Some("1000".into()), Some(v2.into())),
+            Some(700)
+        );
+        let v1 = "cache 900\ninactive_file 5\ntotal_cache 900\ntotal_inactive_file 650\n";
+        assert_eq!(
+            cgroup_room(Some("1000".into()), Some("990".into()), Some(v1.into())),
+            Some(660)
+        );
+        assert_eq!(
+            cgroup_room(Some("1000".into()), Some("100".into()), Some(v2.into())),
+            Some(1000)
+        );
+        assert_eq!(
+            cgroup_room(
+                Some("1000".into()),
+                Some("990".into()),
+                Some("garbage".into())
+            ),
+            Some(10)
+        );
         let limits = "Limit                     Soft Limit           Hard Limit           Units\n\
                       Max address space         1073741824           unlimited            bytes\n";
         assert_eq!(

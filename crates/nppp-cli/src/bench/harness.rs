@@ -209,10 +209,13 @@ pub(super) fn render_with(
     )
 }
 
-/// The scene at `path` as the bench renders it: read, checked and resized
-/// to the plan's resolution.
+/// The scene at `path` as the bench renders it: read, checked (its memory
+/// too) and resized to the plan's resolution.
 fn load_for_bench(path: &Path, plan: &Plan) -> Result<nppp_scene::Scene> {
     let mut scene = nppp_scene::load_scene(path)?;
+    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene) {
+        bail!("{}: {problem}", path.display());
+    }
     scene
         .camera
         .resize(Some(plan.scale), None, None)

@@ -38,12 +38,12 @@ pub const MIN_WORLD_SIZE: f64 = 1e-9;
 /// tree took minutes).
 pub const MIN_FLOAT_STEPS: f64 = 8.0;
 
-/// Memory a render holds per triangle of the scene's meshes: the mesh, its
-/// BVH, and the world-space copies that merge the meshes used once into one
-/// tree (and a second layout when estimators are in use). Measured peak
-/// resident memory of `nppp render`: 330-340 bytes a triangle with one to
-/// four icospheres of 1.3 M triangles; rounded up.
-pub const RENDER_BYTES_PER_TRIANGLE: u64 = 400;
+/// Memory the loaded meshes take per triangle (vertices, triangles, the
+/// generators' working copies). Measured peak resident memory of `nppp
+/// mesh` on four icospheres of 1.3 M triangles: 29 bytes a triangle;
+/// rounded up. Rendering takes more (nppp-render's
+/// `RENDER_BYTES_PER_TRIANGLE`, checked by the commands that render).
+pub const MESH_BYTES_PER_TRIANGLE: u64 = 48;
 
 /// What makes an object spanning `lo..hi` (world space) too small for
 /// 32-bit float geometry, if anything: its size ([`MIN_WORLD_SIZE`]), the
@@ -444,11 +444,11 @@ impl Cx<'_> {
         })
     }
 
-    /// Builds the meshes, refusing a scene whose geometry would not fit in
-    /// the memory available to render it ([`RENDER_BYTES_PER_TRIANGLE`])
-    /// with a message instead of an allocation failure: first from the
-    /// triangle counts known without building (shapes and procedural
-    /// objects), before any mesh is made, then as each OBJ is read.
+    /// Builds the meshes, refusing a scene whose meshes would not fit in
+    /// the memory available ([`MESH_BYTES_PER_TRIANGLE`]) with a message
+    /// instead of an allocation failure: first from the triangle counts
+    /// known without building (shapes and procedural objects), before any
+    /// mesh is made, then as each OBJ is read.
     fn meshes_within_memory(&self, entries: &[(String, Json)], path: &str) -> Res<Vec<Mesh>> {
         let available = nppp_files::available_memory();
         let keys: Vec<String> = entries
@@ -461,15 +461,15 @@ impl Cx<'_> {
             .map(|((_, v), key)| self.predicted_triangles(v, key).unwrap_or(0))
             .collect();
         let too_much = |triangles: u64| {
-            available.filter(|&a| triangles.saturating_mul(RENDER_BYTES_PER_TRIANGLE) > a)
+            available.filter(|&a| triangles.saturating_mul(MESH_BYTES_PER_TRIANGLE) > a)
         };
         let message = |triangles: u64, available: u64, largest: &str| {
             format!(
-                "the scene's meshes have {} triangles{largest}; rendering them takes about {} \
-                 (about {RENDER_BYTES_PER_TRIANGLE} bytes a triangle), more than the {} of memory \
+                "the scene's meshes have {} triangles{largest}; loading them takes about {} \
+                 (about {MESH_BYTES_PER_TRIANGLE} bytes a triangle), more than the {} of memory \
                  available: use fewer or coarser meshes (instances of one mesh share its triangles)",
                 count_text(triangles),
-                nppp_files::format_bytes(triangles.saturating_mul(RENDER_BYTES_PER_TRIANGLE)),
+                nppp_files::format_bytes(triangles.saturating_mul(MESH_BYTES_PER_TRIANGLE)),
                 nppp_files::format_bytes(available)
             )
         };
