@@ -5,49 +5,15 @@
 #![allow(dead_code)]
 
 use std::ffi::OsStr;
-use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-/// A fresh, empty folder named after the test file (`prefix`) and the case.
+/// A fresh, empty folder named after the test file (`prefix`) and the case,
+/// removed when the test is done (kept when it fails).
 pub fn scratch(prefix: &str, name: &str) -> Scratch {
-    let d = std::env::temp_dir().join(format!("nppp-{prefix}-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    Scratch(d)
+    Scratch::new(&format!("nppp-{prefix}-{}-{name}", std::process::id()))
 }
 
-/// A test's scratch folder: removed with everything in it when the test
-/// is done, kept when it fails (its path is in the failure's message, to
-/// look at what the run left).
-#[derive(Debug)]
-pub struct Scratch(PathBuf);
-
-impl std::ops::Deref for Scratch {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        &self.0
-    }
-}
-
-impl AsRef<Path> for Scratch {
-    fn as_ref(&self) -> &Path {
-        &self.0
-    }
-}
-
-impl AsRef<OsStr> for Scratch {
-    fn as_ref(&self) -> &OsStr {
-        self.0.as_os_str()
-    }
-}
-
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        if !std::thread::panicking() {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
-}
+pub use nppp_files::ScratchDir as Scratch;
 
 /// Runs the `nppp` binary with `env` set (and no backtraces on stderr).
 pub fn nppp_env<I, S>(args: I, env: &[(&str, &str)]) -> Output
