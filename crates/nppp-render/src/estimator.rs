@@ -178,7 +178,7 @@ struct WorldSphere {
 /// world-space test leaves a ray to the exact test. The world and
 /// object-space arithmetic round differently, by about 1e-7 of the
 /// coordinates involved; that part of the margin is added per ray
-/// ([`WorldSphere::cannot_enter`]).
+/// ([`WorldSphere::classify`]).
 const WORLD_SPHERE_MARGIN: f32 = 1e-3;
 
 /// Rounding of either test per unit of the coordinates involved, with room

@@ -17,7 +17,7 @@
 //! may leave out vertices within about 1e-5 of the object's size of it),
 //! within the mesh's box; a flat mesh has its box alone. A mesh of more
 //! than 200,000 vertices is bounded by 2,000 planes touching it instead
-//! (a little larger than its hull: see [`EXACT_HULL_MAX_VERTICES`]). A triangle of the
+//! (a little larger than its hull: see `EXACT_HULL_MAX_VERTICES`). A triangle of the
 //! other instance meets it where clipping the triangle by every plane
 //! leaves something. Touching is not meeting: the planes are moved in by
 //! 1e-4 of the object's size first (well above the rounding of a rotated
