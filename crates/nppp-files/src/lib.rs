@@ -519,7 +519,7 @@ pub fn crash_point(name: &str) {
 /// its path is in the failure's message). The test suites used to leave
 /// every folder behind (670 after a day of runs).
 #[derive(Debug)]
-pub struct ScratchDir(std::path::PathBuf);
+pub struct ScratchDir(PathBuf);
 
 impl ScratchDir {
     /// `name` under the temp dir, emptied first if a run before left it.
@@ -565,19 +565,18 @@ impl Drop for ScratchDir {
 /// counts the whole host's memory), and the room left in its address space
 /// limit (`ulimit -v`). `None` where none of these can be read.
 pub fn available_memory() -> Option<u64> {
-    let read = |p: &str| std::fs::read_to_string(p).ok();
-    let mut least = read("/proc/meminfo").and_then(|t| meminfo_available(&t));
-    if let Some(groups) = read("/proc/self/cgroup") {
+    let read = |p: &Path| std::fs::read_to_string(p).ok();
+    let mut least = read(Path::new("/proc/meminfo")).and_then(|t| meminfo_available(&t));
+    if let Some(groups) = read(Path::new("/proc/self/cgroup")) {
         for dir in cgroup_memory_dirs(&groups) {
             // Every ancestor's limit applies too.
             let mut d = dir.as_path();
             loop {
                 let room = cgroup_room(
-                    read(&d.join("memory.max").to_string_lossy())
-                        .or_else(|| read(&d.join("memory.limit_in_bytes").to_string_lossy())),
-                    read(&d.join("memory.current").to_string_lossy())
-                        .or_else(|| read(&d.join("memory.usage_in_bytes").to_string_lossy())),
-                    read(&d.join("memory.stat").to_string_lossy()),
+                    read(&d.join("memory.max")).or_else(|| read(&d.join("memory.limit_in_bytes"))),
+                    read(&d.join("memory.current"))
+                        .or_else(|| read(&d.join("memory.usage_in_bytes"))),
+                    read(&d.join("memory.stat")),
                 );
                 least = min_known(least, room);
                 match d.parent() {
@@ -589,7 +588,10 @@ pub fn available_memory() -> Option<u64> {
             }
         }
     }
-    if let (Some(limits), Some(status)) = (read("/proc/self/limits"), read("/proc/self/status")) {
+    if let (Some(limits), Some(status)) = (
+        read(Path::new("/proc/self/limits")),
+        read(Path::new("/proc/self/status")),
+    ) {
         least = min_known(least, address_space_room(&limits, &status));
     }
     least
@@ -612,8 +614,8 @@ fn meminfo_available(meminfo: &str) -> Option<u64> {
 /// The memory control groups' folders named by `/proc/self/cgroup`'s text:
 /// version 2's `0::/path` under `/sys/fs/cgroup`, version 1's
 /// `N:memory:/path` under `/sys/fs/cgroup/memory`.
-fn cgroup_memory_dirs(cgroup: &str) -> Vec<std::path::PathBuf> {
-    let root = std::path::Path::new("/sys/fs/cgroup");
+fn cgroup_memory_dirs(cgroup: &str) -> Vec<PathBuf> {
+    let root = Path::new("/sys/fs/cgroup");
     cgroup
         .lines()
         .filter_map(|l| {
