@@ -856,27 +856,11 @@ fn paired_difference_variance(a: &Image, b: &Image, pa: &Image, pb: &Image) -> f
     {
         return f64::INFINITY;
     }
-    let mut var = 0.0f64;
-    let mut n = 0usize;
-    for (((x, y), px), py) in a
-        .pixels
-        .iter()
-        .zip(&b.pixels)
-        .zip(&pa.pixels)
-        .zip(&pb.pixels)
-    {
-        for c in 0..3 {
-            let d = (x[c] as f64 - px[c] as f64) - (y[c] as f64 - py[c] as f64);
-            var += 0.25 * d * d;
-            n += 1;
-        }
-    }
-    let n = n.max(1) as f64;
-    if var.is_finite() {
-        var / (n * n)
-    } else {
-        f64::INFINITY
-    }
+    let differences = channel_pairs(a, b)
+        .zip(channel_pairs(pa, pb))
+        .map(|((x, y), (px, py))| (x - px, y - py));
+    let (_, var) = halves_mean_and_variance(differences);
+    if var.is_finite() { var } else { f64::INFINITY }
 }
 
 /// Bias test and efficiency of `t` against PT's trial: its image mean may
@@ -954,16 +938,27 @@ fn blur(img: &[[f32; 3]], width: usize, r: usize) -> Vec<[f32; 3]> {
 /// The mean of the two halves' mean image over pixels and channels, and
 /// its variance (from each pixel's `(a - b)^2 / 4`).
 fn mean_and_variance(a: &Image, b: &Image) -> (f64, f64) {
+    halves_mean_and_variance(channel_pairs(a, b))
+}
+
+/// Every channel of every pixel of `a` beside `b`'s.
+fn channel_pairs<'i>(a: &'i Image, b: &'i Image) -> impl Iterator<Item = (f64, f64)> + 'i {
+    a.pixels
+        .iter()
+        .zip(&b.pixels)
+        .flat_map(|(x, y)| (0..3).map(move |c| (x[c] as f64, y[c] as f64)))
+}
+
+/// The mean of `(x + y) / 2` over `halves`, and its variance from the two
+/// halves' spread.
+fn halves_mean_and_variance(halves: impl Iterator<Item = (f64, f64)>) -> (f64, f64) {
     let mut sum = 0.0f64;
     let mut var = 0.0f64;
     let mut n = 0usize;
-    for (x, y) in a.pixels.iter().zip(&b.pixels) {
-        for c in 0..3 {
-            let (x, y) = (x[c] as f64, y[c] as f64);
-            sum += 0.5 * (x + y);
-            var += 0.25 * (x - y) * (x - y);
-            n += 1;
-        }
+    for (x, y) in halves {
+        sum += 0.5 * (x + y);
+        var += 0.25 * (x - y) * (x - y);
+        n += 1;
     }
     let n = n.max(1) as f64;
     (sum / n, var / (n * n))
