@@ -6,6 +6,7 @@
 //! the data generator and the estimator runtime agree bit for bit.
 
 pub mod atan2;
+pub mod closest_point;
 pub mod frame;
 pub mod rng;
 pub mod sampling;

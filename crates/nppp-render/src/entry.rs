@@ -114,10 +114,18 @@ impl EntryBatch {
                     {
                         let macs = sampler.vertex_multiply_adds().unwrap_or(0);
                         stats.count_decoder_rows(verts.len(), macs, 0);
+                        let tracer = scene.object_tracer(est, 0);
+                        let snap = est.surface_snap.as_ref();
+                        let on_surface = |p: Vec3| {
+                            let at = snap?.closest(p)?;
+                            let (ng, ns) = tracer.normals_at(&at);
+                            Some((at.point, ng, ns))
+                        };
                         for (&i, v) in rows.iter().zip(verts) {
                             let depth = paths[self.entries[i].0].depth;
                             let budget = max_bounces.saturating_sub(depth);
-                            self.skipped[i] = network_skipped(v, &est.sphere, bsdf, budget);
+                            self.skipped[i] =
+                                network_skipped(v, &est.sphere, bsdf, budget, on_surface);
                         }
                     }
                     let max_b = sampler.meta().max_internal_bounces;

@@ -94,6 +94,10 @@ pub struct Estimator {
     pub min_bounces: u32,
     /// Next-event estimation through this estimator.
     pub entry_nee: EntryNee,
+    /// Where a neural estimator's picked vertex is moved onto the real
+    /// surface (built for networks with a vertex head whose object takes
+    /// light samples).
+    pub surface_snap: Option<crate::surface_snap::SurfaceSnap>,
 }
 
 impl Estimator {
@@ -420,38 +424,55 @@ pub fn pick_skipped(verts: &[WalkVertex], bsdf: Bsdf, budget: u32, u: f32) -> Sk
 }
 
 /// How far (in sphere radii) a network's picked vertex is moved along its
-/// normal, to the side the path arrived on, before its light sample. The
-/// vertex head's positions scatter around the surface (0.06-0.08 radii from
-/// the nearest real vertex on the knot's held-out rays), and a light sample
-/// taken from inside the object is shadowed by the object itself. On the
-/// default scene at 64 spp (P = 0 / P = 1, image mean against the
-/// reference's 0.2112 in red): offset 0 gave relMSE 0.00432 / - and mean
-/// 0.2063; 0.01: 0.00351 / 0.00180, 0.2075 / 0.2091; 0.03: 0.00294 /
-/// 0.00181, 0.2091 / 0.2101; 0.05: 0.00290 / 0.00185, 0.2099 / 0.2107.
+/// normal, to the side the path arrived on, before its light sample, where
+/// it cannot be moved onto the real surface ([`crate::surface_snap`]: no
+/// triangle within its reach). The vertex head's positions scatter around
+/// the surface (0.06-0.08 radii from the nearest real vertex on the knot's
+/// held-out rays), and a light sample taken from inside the object is
+/// shadowed by the object itself. On the default scene at 64 spp (P = 0 /
+/// P = 1, image mean against the reference's 0.2112 in red), before the
+/// vertices were moved onto the surface: offset 0 gave relMSE 0.00432 / -
+/// and mean 0.2063; 0.01: 0.00351 / 0.00180, 0.2075 / 0.2091; 0.03:
+/// 0.00294 / 0.00181, 0.2091 / 0.2101; 0.05: 0.00290 / 0.00185, 0.2099 /
+/// 0.2107.
 const NETWORK_VERTEX_OFFSET: f32 = 0.04;
 
 /// The picked vertex a network's vertex head returned (unit sphere frame)
-/// as the renderer uses it: mesh space, moved off the surface by
-/// `NETWORK_VERTEX_OFFSET`, no light sample when it carries no throughput
-/// or lies past the `budget` of bounces left, and the light at the skipped
-/// vertices counted by the light sample alone.
+/// as the renderer uses it: in mesh space, on the real surface where
+/// `on_surface` finds a point there (mesh-space point, geometric and
+/// shading normals, from the predicted mesh-space position) that faces as
+/// the prediction does (its outward normal on the predicted normal's side,
+/// and the path arriving on the same side of it: a point of the other side
+/// of a thin part is not where the path scattered), else moved off the
+/// surface by `NETWORK_VERTEX_OFFSET`; no light sample when it carries no
+/// throughput or lies past the `budget` of bounces left; the light at the
+/// skipped vertices counted by the light sample alone.
 pub fn network_skipped(
     v: &nppp_estimator::PickedVertex,
     sphere: &BoundingSphere,
     bsdf: Bsdf,
     budget: u32,
+    on_surface: impl FnOnce(Vec3) -> Option<(Vec3, Vec3, Vec3)>,
 ) -> SkippedVertices {
     let usable = v.beta.max_element() > 0.0 && v.index < budget && !bsdf.is_delta();
     let nee = usable.then(|| {
-        let side = if v.normal.dot(v.wo) >= 0.0 {
-            v.normal
-        } else {
-            -v.normal
+        let faces_alike = |&(_, ng, _): &(Vec3, Vec3, Vec3)| {
+            ng.dot(v.normal) > 0.0 && (ng.dot(v.wo) > 0.0) == (v.normal.dot(v.wo) > 0.0)
         };
+        let surface = on_surface(sphere.from_unit_point(v.position)).filter(faces_alike);
+        let (point, ng, ns) = surface.unwrap_or_else(|| {
+            let side = if v.normal.dot(v.wo) >= 0.0 {
+                v.normal
+            } else {
+                -v.normal
+            };
+            let point = sphere.from_unit_point(v.position + side * NETWORK_VERTEX_OFFSET);
+            (point, v.normal, v.normal)
+        });
         let vertex = WalkVertex {
-            point: sphere.from_unit_point(v.position + side * NETWORK_VERTEX_OFFSET),
-            ng: v.normal,
-            ns: v.normal,
+            point,
+            ng,
+            ns,
             wo: v.wo,
             beta: v.beta,
             index: v.index,
@@ -858,6 +879,7 @@ impl Estimators {
                     medium,
                     min_bounces,
                     entry_nee: EntryNee::Off,
+                    surface_snap: None,
                 },
                 _ => {
                     let file_err = |err| EstimatorLoadError::File { instance: ii, err };
@@ -925,7 +947,7 @@ impl Estimators {
                         },
                         _ => EstimatorModel::Neural { sampler },
                     };
-                    Estimator {
+                    let est = Estimator {
                         model,
                         sphere,
                         mesh: inst.mesh,
@@ -933,6 +955,12 @@ impl Estimators {
                         medium,
                         min_bounces,
                         entry_nee: EntryNee::Off,
+                        surface_snap: None,
+                    };
+                    Estimator {
+                        surface_snap: (est.has_vertex_head() && est.takes_light_samples())
+                            .then(|| crate::surface_snap::SurfaceSnap::build(mesh, &sphere)),
+                        ..est
                     }
                 }
             };
@@ -1124,5 +1152,50 @@ mod tests {
         assert_eq!(world.classify(Vec3::new(0.0, 1.0, -3.0), Vec3::Z), None);
         assert_eq!(world.classify(Vec3::new(0.0, 0.0, 1.0), Vec3::Z), None);
         assert_eq!(world.classify(Vec3::splat(f32::NAN), Vec3::Z), None);
+    }
+
+    /// The network's vertex takes the real surface's point and normals
+    /// where `on_surface` finds a point that faces as predicted; a point of
+    /// the other side of a thin part, or none, leaves it pushed off along
+    /// its own normal.
+    #[test]
+    fn a_network_vertex_moves_onto_the_surface_only_where_it_faces_alike() {
+        let sphere = BoundingSphere {
+            center: Vec3::new(10.0, 0.0, 0.0),
+            radius: 2.0,
+        };
+        let bsdf = Bsdf::Diffuse {
+            albedo: Vec3::splat(0.5),
+        };
+        let v = nppp_estimator::PickedVertex {
+            position: Vec3::new(0.0, 0.3, 0.0),
+            normal: Vec3::Y,
+            wo: Vec3::new(0.0, 0.6, 0.8),
+            beta: Vec3::ONE,
+            index: 0,
+        };
+        let real = (Vec3::new(10.0, 0.5, 0.0), Vec3::new(0.0, 0.8, 0.6), Vec3::Y);
+        let s = network_skipped(&v, &sphere, bsdf, 5, |p| {
+            assert_eq!(p, Vec3::new(10.0, 0.6, 0.0), "asked in mesh space");
+            Some(real)
+        });
+        let (w, _) = s.nee.expect("a light sample");
+        assert_eq!((w.point, w.ng, w.ns), real);
+        assert!(s.light_alone);
+        let pushed = Vec3::new(10.0, 0.6 + NETWORK_VERTEX_OFFSET * 2.0, 0.0);
+        // The far side of a thin part faces the other way.
+        let far_side = (Vec3::new(10.0, 0.2, 0.0), -Vec3::Y, -Vec3::Y);
+        for found in [Some(far_side), None] {
+            let (w, _) = network_skipped(&v, &sphere, bsdf, 5, |_| found)
+                .nee
+                .unwrap();
+            assert!(w.point.distance(pushed) < 1e-6, "{}", w.point);
+            assert_eq!((w.ng, w.ns), (Vec3::Y, Vec3::Y));
+        }
+        // Past the bounce budget: no light sample, nothing looked up.
+        let s = network_skipped(&v, &sphere, bsdf, 0, |_| -> Option<(Vec3, Vec3, Vec3)> {
+            panic!("looked up an unused vertex")
+        });
+        assert!(s.nee.is_none());
     }
 }

@@ -32,6 +32,7 @@ pub mod render;
 pub mod render_part;
 pub mod scene_data;
 pub mod surface;
+pub mod surface_snap;
 
 pub use image_io::Image;
 pub use render::{RenderOptions, RenderStats, render, render_after, render_film};

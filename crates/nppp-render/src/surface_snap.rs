@@ -1,0 +1,259 @@
+//! Moving a network's picked vertex onto the object's real surface before
+//! its light sample.
+//!
+//! The vertex head predicts where the skipped path scattered, but its
+//! positions scatter around the surface (0.06-0.08 sphere radii from the
+//! nearest real vertex on the knot's held-out rays). A light sample taken
+//! from a point inside the object is shadowed by the object itself, and one
+//! from a point floating above it sees light the real surface does not, so
+//! how wrong the image is depended on where the light came from: a fixed
+//! push along the predicted normal (`NETWORK_VERTEX_OFFSET`) suited the
+//! Cornell box's ceiling lamp, and a knot lit from the side rendered 25%
+//! dark at P = 0 (BENCHMARKS.md, "The picked vertex on the real surface").
+//! Moved to the closest point of the real mesh, the vertex takes its light
+//! sample where a real path could have scattered, with the real normal,
+//! and self-shadowing is exact.
+//!
+//! The closest point comes from a grid over the sphere's cube that stores,
+//! per cell, the triangle closest to the cell's centre (cells farther than
+//! [`REACH`] from the surface store none), built by jump flooding from the
+//! cells the triangles cross. A lookup reads one cell and one triangle and
+//! projects the point onto it: the answer is always a point of the mesh,
+//! within about a cell of the exact closest point.
+
+use glam::{UVec3, Vec3};
+use nppp_geom::BoundingSphere;
+use nppp_geom::closest_point::closest_point_on_triangle;
+use nppp_scene::Mesh;
+use rayon::prelude::*;
+
+/// Cells per axis of the grid over the sphere's cube: cells of 1/32 of
+/// the radius (the knot's tube is about 0.2 radii thick).
+pub const RESOLUTION: u32 = 64;
+/// Farthest a predicted vertex is moved, in sphere radii: a vertex farther
+/// from every triangle keeps the fixed push (`NETWORK_VERTEX_OFFSET`).
+pub const REACH: f32 = 0.2;
+const NONE: u32 = u32::MAX;
+
+/// A point of the mesh: where a triangle was met and its barycentrics.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MeshPoint {
+    /// Mesh space.
+    pub point: Vec3,
+    /// Triangle index in the mesh's own order.
+    pub prim: u32,
+    pub b1: f32,
+    pub b2: f32,
+}
+
+/// The closest-triangle grid of one mesh (see the module doc).
+pub struct SurfaceSnap {
+    /// Mesh-space low corner of the grid.
+    origin: Vec3,
+    /// Cells per mesh unit.
+    inv_cell: f32,
+    /// Per cell (x fastest): the triangle closest to its centre, or `NONE`.
+    cells: Vec<u32>,
+    /// Per triangle: its corners, mesh space.
+    triangles: Vec<[Vec3; 3]>,
+    /// The squared distance a point may be moved: REACH and a cell's
+    /// diagonal (mesh units).
+    max_move2: f32,
+}
+
+impl SurfaceSnap {
+    /// The grid of `mesh` over the cube around `sphere` (mesh space).
+    pub fn build(mesh: &Mesh, sphere: &BoundingSphere) -> Self {
+        let res = RESOLUTION as usize;
+        let cell = 2.0 * sphere.radius / RESOLUTION as f32;
+        let origin = sphere.center - Vec3::splat(sphere.radius);
+        let triangles: Vec<[Vec3; 3]> = mesh
+            .triangles
+            .iter()
+            .map(|t| t.map(|i| mesh.positions[i as usize]))
+            .collect();
+        let centre = |i: usize| {
+            let (x, y, z) = (i % res, (i / res) % res, i / (res * res));
+            origin + (Vec3::new(x as f32, y as f32, z as f32) + 0.5) * cell
+        };
+        let dist2 = |i: usize, t: u32| {
+            let [a, b, c] = triangles[t as usize];
+            let p = centre(i);
+            p.distance_squared(closest_point_on_triangle(p, a, b, c).0)
+        };
+        let cell_of = |p: Vec3| {
+            let g = ((p - origin) / cell).floor();
+            g.clamp(Vec3::ZERO, Vec3::splat((res - 1) as f32))
+                .as_uvec3()
+        };
+        // Seeds: every cell a triangle's box reaches knows that triangle.
+        let mut best: Vec<(f32, u32)> = vec![(f32::INFINITY, NONE); res * res * res];
+        for (t, [a, b, c]) in triangles.iter().enumerate() {
+            if !(a.is_finite() && b.is_finite() && c.is_finite()) {
+                continue;
+            }
+            let (lo, hi) = (cell_of(a.min(*b).min(*c)), cell_of(a.max(*b).max(*c)));
+            for z in lo.z..=hi.z {
+                for y in lo.y..=hi.y {
+                    for x in lo.x..=hi.x {
+                        let i = index(UVec3::new(x, y, z), res);
+                        let d = dist2(i, t as u32);
+                        if d < best[i].0 {
+                            best[i] = (d, t as u32);
+                        }
+                    }
+                }
+            }
+        }
+        // Jump flooding: each cell takes the closest of the triangles its
+        // neighbours at distance `step` know; 4 + 2 + 1 cells reach past
+        // REACH. A cell whose triangle is within half a cell of its centre
+        // keeps it: a closer one would move a lookup by less than that.
+        let settled = (0.5 * cell).powi(2);
+        for step in [4i32, 2, 1] {
+            let prev = best.clone();
+            best.par_chunks_mut(res * res)
+                .enumerate()
+                .for_each(|(z, slice)| {
+                    for (k, slot) in slice.iter_mut().enumerate() {
+                        let (x, y) = ((k % res) as i32, (k / res) as i32);
+                        let i = z * res * res + k;
+                        if slot.0 <= settled {
+                            continue;
+                        }
+                        for dz in -1..=1 {
+                            for dy in -1..=1 {
+                                for dx in -1..=1 {
+                                    let n = [x + dx * step, y + dy * step, z as i32 + dz * step];
+                                    if n.iter().any(|&c| c < 0 || c >= res as i32) {
+                                        continue;
+                                    }
+                                    let t = prev[index(
+                                        UVec3::new(n[0] as u32, n[1] as u32, n[2] as u32),
+                                        res,
+                                    )]
+                                    .1;
+                                    if t == NONE || t == slot.1 {
+                                        continue;
+                                    }
+                                    let d = dist2(i, t);
+                                    if d < slot.0 {
+                                        *slot = (d, t);
+                                    }
+                                }
+                            }
+                        }
+                    }
+                });
+        }
+        let reach2 = (REACH * sphere.radius).powi(2);
+        let cells = best
+            .into_iter()
+            .map(|(d, t)| if d <= reach2 { t } else { NONE })
+            .collect();
+        Self {
+            origin,
+            inv_cell: 1.0 / cell,
+            cells,
+            triangles,
+            max_move2: (REACH * sphere.radius + cell * 3f32.sqrt()).powi(2),
+        }
+    }
+
+    /// The point of the mesh closest to mesh-space `p` as the grid knows it
+    /// (the closest point of the triangle nearest the centre of `p`'s cell,
+    /// or of the border cell nearest `p` outside the grid), or `None` where
+    /// that triangle is farther than about [`REACH`] from `p`.
+    #[inline]
+    pub fn closest(&self, p: Vec3) -> Option<MeshPoint> {
+        let g = ((p - self.origin) * self.inv_cell).floor();
+        // Also NaN (`clamp` would keep it).
+        if !g.is_finite() {
+            return None;
+        }
+        let g = g.clamp(Vec3::ZERO, Vec3::splat((RESOLUTION - 1) as f32));
+        let t = self.cells[index(g.as_uvec3(), RESOLUTION as usize)];
+        let [a, b, c] = *self.triangles.get(t as usize)?;
+        let (point, b1, b2) = closest_point_on_triangle(p, a, b, c);
+        (p.distance_squared(point) <= self.max_move2).then_some(MeshPoint {
+            point,
+            prim: t,
+            b1,
+            b2,
+        })
+    }
+
+    /// Bytes held.
+    pub fn memory_bytes(&self) -> usize {
+        self.cells.len() * 4 + self.triangles.len() * 36
+    }
+}
+
+#[inline(always)]
+fn index(g: UVec3, res: usize) -> usize {
+    (g.z as usize * res + g.y as usize) * res + g.x as usize
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sphere_mesh() -> (Mesh, BoundingSphere) {
+        let mesh = nppp_scene::icosphere_mesh(Vec3::new(3.0, -2.0, 5.0), 1.0, 3);
+        let sphere = BoundingSphere::around(&mesh.positions, nppp_estimator::SPHERE_MARGIN);
+        (mesh, sphere)
+    }
+
+    /// Brute force: the mesh's closest point to `p`.
+    fn exact(mesh: &Mesh, p: Vec3) -> Vec3 {
+        mesh.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+                closest_point_on_triangle(p, a, b, c).0
+            })
+            .min_by(|x, y| p.distance_squared(*x).total_cmp(&p.distance_squared(*y)))
+            .unwrap()
+    }
+
+    #[test]
+    fn points_near_the_surface_land_on_it_within_a_cell() {
+        let (mesh, sphere) = sphere_mesh();
+        let snap = SurfaceSnap::build(&mesh, &sphere);
+        let cell = 2.0 * sphere.radius / RESOLUTION as f32;
+        let mut rng = nppp_geom::SampleRng::new(7, 0, 0);
+        for _ in 0..500 {
+            let dir = nppp_geom::sampling::uniform_sphere(rng.uniform2());
+            // Inside and outside the unit icosphere, up to 0.15 radii off.
+            let r = 1.0 + (rng.uniform() - 0.5) * 0.3 * sphere.radius;
+            let p = Vec3::new(3.0, -2.0, 5.0) + dir * r;
+            let got = snap.closest(p).expect("near the surface");
+            let want = exact(&mesh, p);
+            let t = mesh.triangles[got.prim as usize].map(|i| mesh.positions[i as usize]);
+            let on = t[0] * (1.0 - got.b1 - got.b2) + t[1] * got.b1 + t[2] * got.b2;
+            assert!(
+                on.distance(got.point) < 1e-5,
+                "the point is on its triangle"
+            );
+            assert!(
+                p.distance(got.point) <= p.distance(want) + 2.0 * cell,
+                "{p}: {} against {}",
+                p.distance(got.point),
+                p.distance(want)
+            );
+        }
+    }
+
+    #[test]
+    fn far_and_broken_points_get_none() {
+        let (mesh, sphere) = sphere_mesh();
+        let snap = SurfaceSnap::build(&mesh, &sphere);
+        assert_eq!(
+            snap.closest(sphere.center),
+            None,
+            "the centre is 1 radius deep"
+        );
+        assert_eq!(snap.closest(Vec3::splat(f32::NAN)), None);
+        assert_eq!(snap.closest(Vec3::splat(1e30)), None);
+    }
+}
