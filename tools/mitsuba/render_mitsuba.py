@@ -93,6 +93,13 @@ def medium_dict(mat, scale):
     sigma_t = (mat.sigma_s + mat.sigma_a) / scale
     albedo = np.divide(mat.sigma_s, mat.sigma_s + mat.sigma_a,
                        out=np.zeros(3), where=(mat.sigma_s + mat.sigma_a) > 0)
+    # A channel with no extinction at all beside channels with some made
+    # volpathmis drop every path that scatters in the medium (its spectral MIS
+    # divides by that channel's zero transmittance pdf: the image no longer
+    # depended on g and came out 4.5% dark). A clear channel gets an extinction of
+    # 1e-6 of the densest one, which changes no image measurably.
+    if sigma_t.max() > 0:
+        sigma_t = np.maximum(sigma_t, 1e-6 * sigma_t.max())
     # scalar_rgb reads an "rgb" sigma_t as a reflectance in [0, 1] (and stops with a
     # traceback above 1): larger coefficients go through the medium's "scale".
     k = float(max(1.0, sigma_t.max()))
