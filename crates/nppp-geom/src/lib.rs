@@ -1,6 +1,7 @@
 //! Math shared by every stage of nppp: rays, orthonormal frames, sampling
-//! routines, per-sample random streams and the sphere-pair parameterization
-//! of rays that the estimator is indexed by.
+//! routines, per-sample random streams, the sphere-pair parameterization
+//! of rays that the estimator is indexed by, and the closest point of a
+//! triangle.
 //!
 //! Everything here is plain data and pure functions so that the renderer,
 //! the data generator and the estimator runtime agree bit for bit.

@@ -1,6 +1,7 @@
 //! The path tracer: two-level BVH, materials, lights, camera, the wavefront
 //! integrator (diffuse bounces shaded eight paths at a time in SIMD lanes), estimator integration (queries, batched answers, next-event
-//! estimation through an estimator, the `auto` pilot, and which instances
+//! estimation through an estimator with the network's vertex moved onto the
+//! real surface, the `auto` pilot, and which instances
 //! may not use theirs: other geometry inside the object's convex hull),
 //! homogeneous media
 //! inside translucent objects, object walks
