@@ -154,9 +154,18 @@ impl Threads {
                 t <= most,
                 "--threads {t}: at most {most} ({MAX_THREADS_PER_CORE} per core; this machine has {cores})"
             );
+            // rayon's error repeats its cause; said once, with the flag.
             rayon::ThreadPoolBuilder::new()
                 .num_threads(t)
-                .build_global()?;
+                .build_global()
+                .map_err(|e| {
+                    let why =
+                        std::error::Error::source(&e).map_or(e.to_string(), |s| s.to_string());
+                    anyhow::anyhow!(
+                        "--threads {t}: cannot start {t} worker threads ({why}); ask for fewer, \
+                         or raise the process's limits (ulimit -u, ulimit -v)"
+                    )
+                })?;
         }
         Ok(())
     }

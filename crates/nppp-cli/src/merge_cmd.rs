@@ -29,7 +29,10 @@ pub fn parse_shard(s: &str) -> Result<Shard, String> {
     let num = |t: &str, what: &str| {
         t.trim()
             .parse::<u32>()
-            .map_err(|_| format!("\"{s}\": {what} \"{t}\" is not a whole number"))
+            .map_err(|_| match t.trim().parse::<u128>() {
+                Ok(_) => format!("\"{s}\": {what} {t} is too large"),
+                Err(_) => format!("\"{s}\": {what} \"{t}\" is not a whole number"),
+            })
     };
     let (index, count) = (num(i, "I")?, num(k, "K")?);
     if count == 0 {
@@ -221,5 +224,13 @@ mod tests {
             assert!(parse_shard(bad).is_err(), "{bad}");
         }
         assert!(parse_shard("4/4").unwrap_err().contains("0 to 3"));
+        // Whole but too large for a shard count: said so, not "not a number".
+        let e = parse_shard("0/4294967296").unwrap_err();
+        assert!(e.contains("too large"), "{e}");
+        assert!(
+            parse_shard("0/x")
+                .unwrap_err()
+                .contains("not a whole number")
+        );
     }
 }

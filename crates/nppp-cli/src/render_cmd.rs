@@ -306,6 +306,16 @@ fn check_outputs(a: &RenderArgs, scene: &nppp_scene::Scene) -> Result<()> {
     Ok(())
 }
 
+/// A flag's number as a message shows it: in e-notation when huge or tiny
+/// (`--exposure 1e30` printed 31 digits).
+fn shown(v: f64) -> String {
+    if v.is_finite() && v != 0.0 && !(1e-3..1e6).contains(&v.abs()) {
+        format!("{v:.3e}")
+    } else {
+        format!("{v}")
+    }
+}
+
 pub fn run(a: &RenderArgs) -> Result<()> {
     let mut scene = nppp_scene::load_scene(&a.scene)?;
     scene
@@ -315,7 +325,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     anyhow::ensure!(
         a.exposure.is_finite() && a.exposure.abs() <= 64.0,
         "--exposure {}: give stops between -64 and 64",
-        a.exposure
+        shown(f64::from(a.exposure))
     );
     // Read the reference first: a bad reference should fail before minutes of rendering.
     let reference = match &a.reference {
@@ -483,7 +493,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         && !(m.is_finite() && (1.0..=10.0).contains(&m))
     {
         bail!(
-            "--auto-margin {m}: give a factor from 1 to 10 (the default is {})",
+            "--auto-margin {}: give a factor from 1 to 10 (the default is {})",
+            shown(m),
             nppp_render::auto::PilotOptions::default().margin
         );
     }

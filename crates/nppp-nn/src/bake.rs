@@ -199,6 +199,19 @@ fn check_res(name: &str, res: u32, channels: usize) -> Result<usize> {
             MAX_STAGING_BYTES >> 30
         );
     }
+    // The staging buffer, and a quarter more for the quantized codes and
+    // the decoder's batches beside it.
+    let need = (bytes as u64).saturating_add(bytes as u64 / 4);
+    if let Some(available) = nppp_files::available_memory()
+        && need > available
+    {
+        bail!(
+            "--{name} {res}: {res}^4 nodes x {channels} channels need about {} while baking, \
+             more than the {} of memory available; choose a smaller grid",
+            nppp_files::format_bytes(need),
+            nppp_files::format_bytes(available)
+        );
+    }
     Ok(n)
 }
 

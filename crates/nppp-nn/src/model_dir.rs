@@ -175,6 +175,36 @@ pub fn checkpoint_dir(out: &Path) -> Option<PathBuf> {
         .find(|d| d.join(files::STATE).is_file())
 }
 
+/// A checkpoint folder of `out` that holds files but no `state.json`
+/// (damaged, or cut short by hand): not a checkpoint a run can read, but
+/// its weights may still be someone's, so a fresh run does not replace it
+/// without `--overwrite`, and readers name it instead of saying there is no
+/// checkpoint.
+pub fn incomplete_checkpoint(out: &Path) -> Option<PathBuf> {
+    [files::CHECKPOINT, files::CHECKPOINT_OLD]
+        .iter()
+        .map(|n| out.join(n))
+        .find(|d| {
+            !d.join(files::STATE).is_file()
+                && fs::read_dir(d).is_ok_and(|mut entries| entries.next().is_some())
+        })
+}
+
+/// What to say of a model directory without a readable checkpoint: that it
+/// has none, or that its checkpoint folder lacks its state.
+pub fn no_checkpoint_message(dir: &Path, none: &str) -> String {
+    match incomplete_checkpoint(dir) {
+        Some(d) => format!(
+            "{} holds no {}: the checkpoint is incomplete or damaged; retrain with `nppp \
+             train --data DATA.nppd --out {} --overwrite`",
+            d.display(),
+            files::STATE,
+            dir.display()
+        ),
+        None => format!("{} {none}", dir.display()),
+    }
+}
+
 /// Reads and checks the checkpoint of `model_dir`; `Ok(None)` when it has
 /// none. `rebuild` is the command that makes the model again, named in
 /// messages about files this build cannot use.
@@ -595,7 +625,7 @@ pub fn load_model_dir(dir: &Path, device: &Device) -> Result<LoadedModel> {
     // A training run may be swapping a checkpoint in: read one whole.
     let lock = checkpoint_read_lock(dir)?;
     let ckpt = open_checkpoint(dir)?
-        .with_context(|| format!("{} holds no checkpoint (train first)", dir.display()))?;
+        .with_context(|| no_checkpoint_message(dir, "holds no checkpoint (train first)"))?;
     let device = device.clone().without_autodiff();
     let model = load_weights(&ckpt, &device)?;
     drop(lock);

@@ -277,8 +277,32 @@ fn corrupt_checkpoint_is_an_error_not_a_panic() {
     let err = train_with_data(&o, info.clone(), data.clone()).unwrap_err();
     assert!(format!("{err:#}").contains("model.bpk"), "{err:#}");
     fs::write(dir.join(files::CHECKPOINT).join(files::STATE), b"{").unwrap();
-    let err = train_with_data(&o, info, data).unwrap_err();
+    let err = train_with_data(&o, info.clone(), data.clone()).unwrap_err();
     assert!(format!("{err:#}").contains("state.json"), "{err:#}");
+    // Without its state.json the folder is no checkpoint a run can read,
+    // but its weights are still someone's: a fresh run without --overwrite
+    // leaves them, and every reader names what is missing.
+    fs::remove_file(dir.join(files::CHECKPOINT).join(files::STATE)).unwrap();
+    let weights = fs::read(dir.join(files::CHECKPOINT).join(files::WEIGHTS)).unwrap();
+    let err = train_with_data(&opts(&dir).tap_epochs(1), info.clone(), data.clone()).unwrap_err();
+    assert!(format!("{err:#}").contains("--overwrite"), "{err:#}");
+    assert_eq!(
+        fs::read(dir.join(files::CHECKPOINT).join(files::WEIGHTS)).unwrap(),
+        weights,
+        "a fresh run replaced the weights"
+    );
+    let err = train_with_data(&o, info, data).unwrap_err();
+    assert!(
+        format!("{err:#}").contains("incomplete or damaged"),
+        "{err:#}"
+    );
+    let err = nppp_nn::load_model_dir(&dir, &BackendKind::Ndarray.device().unwrap())
+        .err()
+        .unwrap();
+    assert!(
+        format!("{err:#}").contains("incomplete or damaged"),
+        "{err:#}"
+    );
     let err = nppp_nn::load_model_dir(&dir.join("nope"), &BackendKind::Ndarray.device().unwrap())
         .err()
         .unwrap();

@@ -93,6 +93,15 @@ impl ObjectTracer<'_> {
         })
     }
 
+    /// Starts reading triangle `prim`'s normals and returns at once.
+    #[inline]
+    pub fn prefetch_normals(&self, prim: u32) {
+        crate::bvh::prefetch_item(self.geo_normals, prim as usize);
+        if let Some(n) = self.shading_normals {
+            crate::bvh::prefetch_item(n, prim as usize);
+        }
+    }
+
     /// The geometric and shading normals at a point of the mesh (both
     /// on the mesh's outward side).
     pub fn normals_at(&self, at: &crate::surface_snap::MeshPoint) -> (Vec3, Vec3) {

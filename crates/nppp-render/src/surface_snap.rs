@@ -163,16 +163,39 @@ impl SurfaceSnap {
     /// The point of the mesh closest to mesh-space `p` as the grid knows it
     /// (the closest point of the triangle nearest the centre of `p`'s cell,
     /// or of the border cell nearest `p` outside the grid), or `None` where
-    /// that triangle is farther than about [`REACH`] from `p`.
+    /// that triangle is farther than about [`REACH`] from `p`. The three
+    /// steps below, for callers that start a batch's reads before using
+    /// any (each is a cache miss: the grid, then the triangle).
     #[inline]
     pub fn closest(&self, p: Vec3) -> Option<MeshPoint> {
+        let t = self.triangle_in(self.cell_of(p)?)?;
+        self.closest_on(t, p)
+    }
+
+    /// The cell `p` reads (clamped to the grid), or `None` for NaN.
+    #[inline]
+    pub fn cell_of(&self, p: Vec3) -> Option<u32> {
         let g = ((p - self.origin) * self.inv_cell).floor();
-        // Also NaN (`clamp` would keep it).
+        // `clamp` would keep a NaN.
         if !g.is_finite() {
             return None;
         }
         let g = g.clamp(Vec3::ZERO, Vec3::splat((RESOLUTION - 1) as f32));
-        let t = self.cells[index(g.as_uvec3(), RESOLUTION as usize)];
+        Some(index(g.as_uvec3(), RESOLUTION as usize) as u32)
+    }
+
+    /// The triangle cell `cell` knows, if one is within reach of it.
+    #[inline]
+    pub fn triangle_in(&self, cell: u32) -> Option<u32> {
+        self.cells
+            .get(cell as usize)
+            .copied()
+            .filter(|&t| t != NONE)
+    }
+
+    /// The closest point of triangle `t` to `p`, if within the reach.
+    #[inline]
+    pub fn closest_on(&self, t: u32, p: Vec3) -> Option<MeshPoint> {
         let [a, b, c] = *self.triangles.get(t as usize)?;
         let (point, b1, b2) = closest_point_on_triangle(p, a, b, c);
         (p.distance_squared(point) <= self.max_move2).then_some(MeshPoint {
@@ -181,6 +204,18 @@ impl SurfaceSnap {
             b1,
             b2,
         })
+    }
+
+    /// Starts reading cell `cell` and returns at once.
+    #[inline]
+    pub fn prefetch_cell(&self, cell: u32) {
+        crate::bvh::prefetch_item(&self.cells, cell as usize);
+    }
+
+    /// Starts reading triangle `t`'s corners and returns at once.
+    #[inline]
+    pub fn prefetch_triangle(&self, t: u32) {
+        crate::bvh::prefetch_item(&self.triangles, t as usize);
     }
 
     /// Bytes held.

@@ -44,6 +44,11 @@ impl ReferenceMeta {
 }
 
 pub(super) fn resolve_scene(dir: &Path, name: &str) -> Result<PathBuf> {
+    ensure!(
+        !name.trim().is_empty(),
+        "--scenes: an empty scene name (give names or paths separated by commas, e.g. \
+         cornell-box,room)"
+    );
     let p = if name.ends_with(".json") || name.contains('/') {
         PathBuf::from(name)
     } else {

@@ -18,7 +18,7 @@ use crate::io::DatasetInfo;
 use crate::model::ModelConfig;
 use crate::model_dir::{
     Checkpoint, DataFingerprint, check_fresh_out, checkpoint_dir, checkpoint_read_lock,
-    open_checkpoint,
+    incomplete_checkpoint, no_checkpoint_message, open_checkpoint,
 };
 
 /// What `nppp train` was asked for (the CLI's flags, `nppp-cli`'s `TrainArgs`,
@@ -343,12 +343,11 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
         let c = open_checkpoint(&opts.out)
             .context("--resume")?
             .with_context(|| {
-                format!(
-                    "--resume: {} holds no checkpoint to resume (a run saves its first one at \
-                     the end of its first epoch, after {} s, or when stopped)",
-                    opts.out.display(),
-                    CHECKPOINT_EVERY_S
-                )
+                let none = format!(
+                    "holds no checkpoint to resume (a run saves its first one at the end of its \
+                     first epoch, after {CHECKPOINT_EVERY_S} s, or when stopped)"
+                );
+                format!("--resume: {}", no_checkpoint_message(&opts.out, &none))
             })?;
         let cfg = c.train_config.clone();
         ckpt = Some(c);
@@ -375,6 +374,17 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
                 "{} already holds a checkpoint; pass --resume to continue it, --overwrite to \
                  start afresh, or choose another --out",
                 opts.out.display()
+            );
+        }
+        if let Some(d) = incomplete_checkpoint(&opts.out)
+            && !opts.overwrite
+        {
+            bail!(
+                "{} holds files but no {} (an incomplete or damaged checkpoint, whose weights \
+                 may still be wanted); pass --overwrite to start afresh (they are replaced once \
+                 the new run's first checkpoint is in place), or choose another --out",
+                d.display(),
+                crate::model_dir::files::STATE
             );
         }
         let mut cfg = TrainConfig::new(ModelConfig::new());

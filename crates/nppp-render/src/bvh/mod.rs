@@ -282,13 +282,21 @@ impl Payload {
     }
 }
 
+/// Prefetches item `i` of `items` (nothing if out of range).
+#[inline(always)]
+pub(crate) fn prefetch_item<T>(items: &[T], i: usize) {
+    if let Some(x) = items.get(i) {
+        prefetch_range((x as *const T).cast(), size_of::<T>());
+    }
+}
+
 /// Prefetches every cache line of the `bytes` bytes at `addr` (a node, or
 /// a leaf's triangle packets). A prefetch never faults, so any address is
 /// fine. Prefetching only a node's or a leaf's first two lines, as before,
 /// left its later lines to stall the box and triangle tests: whole nodes
 /// and leaves measured 1.02x-1.06x the throughput (`blas_layout`, AVX-512).
 #[inline(always)]
-fn prefetch_range(addr: *const u8, bytes: usize) {
+pub(crate) fn prefetch_range(addr: *const u8, bytes: usize) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
