@@ -381,12 +381,36 @@ fn progress_bar(rays: u64, quiet: bool) -> ProgressBar {
     bar
 }
 
+/// Refuses an object whose mesh and BVH would not fit in the memory
+/// available (as `nppp render` does, at its bytes a triangle), before they
+/// are built: a message instead of an allocation failure.
+fn check_memory(triangles: u64, what: &str) -> Result<()> {
+    let per = nppp_render::scene_data::RENDER_BYTES_PER_TRIANGLE;
+    let need = triangles.saturating_mul(per);
+    if let Some(available) = nppp_files::available_memory()
+        && need > available
+    {
+        bail!(
+            "{what}: its mesh has {triangles} triangles; tracing it takes about {} (about {per} \
+             bytes a triangle: the mesh and its BVH), more than the {} of memory available: use \
+             a coarser mesh",
+            nppp_files::format_bytes(need),
+            nppp_files::format_bytes(available)
+        );
+    }
+    Ok(())
+}
+
 /// The object named by the flags, and the files it was read from (which
 /// `--out` must not name).
 fn load_object(a: &GenArgs) -> Result<(GenObject, Vec<(String, PathBuf)>)> {
     if let Some(path) = &a.scene {
         let scene = nppp_scene::load_scene(path)?;
         let index = a.instance.context("--scene needs --instance N")?;
+        if let Some(inst) = scene.instances.get(index) {
+            let triangles = scene.meshes[inst.mesh].triangles.len() as u64;
+            check_memory(triangles, &format!("--instance {index}"))?;
+        }
         return Ok((
             GenObject::from_scene_instance(&scene, index)?,
             scene.input_files(),
@@ -418,6 +442,7 @@ fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
     );
     let (mesh_name, mesh) = match procedural {
         Some(p) => {
+            check_memory(p.triangle_count(), &format!("--mesh {mesh_arg}"))?;
             let m = p.build().with_context(|| format!("--mesh {mesh_arg}"))?;
             (
                 p.name(),

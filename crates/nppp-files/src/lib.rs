@@ -129,17 +129,57 @@ fn rename_into_place(tmp: &Path, path: &Path) -> io::Result<()> {
     Ok(())
 }
 
-/// Deletes the temporary file of every write still in progress; for a
-/// signal handler about to end the process (the targets keep their old
-/// contents, as after a kill). Returns the outputs already put in place
-/// before it ran.
+/// Folders this process is assembling that are not in place yet (a
+/// checkpoint's `checkpoint.tmp/`, a model folder before its first
+/// checkpoint): [`remove_pending_temp_files`] removes them whole. A second
+/// Ctrl-C during a fresh `nppp train` left both behind.
+static PENDING_DIRS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+fn pending_dirs() -> MutexGuard<'static, Vec<PathBuf>> {
+    PENDING_DIRS.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Tracks folder `dir` (created by this process, or about to be) as not yet
+/// in place. Track it before creating it: a signal between the two then
+/// finds it tracked.
+pub fn track_pending_dir(dir: &Path) {
+    pending_dirs().push(dir.to_path_buf());
+}
+
+/// Stops tracking `dir` (it is in place, or was removed).
+pub fn untrack_pending_dir(dir: &Path) {
+    let mut list = pending_dirs();
+    list.retain(|d| d != dir);
+}
+
+/// Renames folder `tmp` onto `path` and stops tracking `tmp` and the
+/// folders in `settled` (which the rename completes), as one step against a
+/// signal handler's [`remove_pending_temp_files`]: a signal either finds
+/// them pending and removes them or finds the folder in place.
+pub fn rename_dir_into_place(tmp: &Path, path: &Path, settled: &[&Path]) -> io::Result<()> {
+    let mut list = pending_dirs();
+    std::fs::rename(tmp, path)?;
+    list.retain(|d| d != tmp && !settled.contains(&d.as_path()));
+    Ok(())
+}
+
+/// Deletes the temporary file of every write still in progress and every
+/// folder still being assembled; for a signal handler about to end the
+/// process (the targets keep their old contents, as after a kill). Returns
+/// the outputs already put in place before it ran.
 pub fn remove_pending_temp_files() -> Vec<PathBuf> {
     let mut list = pending();
     for tmp in list.drain(..) {
         let _ = std::fs::remove_file(tmp);
     }
+    let mut dirs = pending_dirs();
+    // Latest first: a folder inside another goes before it.
+    for dir in dirs.drain(..).rev() {
+        let _ = std::fs::remove_dir_all(dir);
+    }
     // Held until the process exits: no rename completes after this.
     std::mem::forget(list);
+    std::mem::forget(dirs);
     WRITTEN.lock().unwrap_or_else(|e| e.into_inner()).clone()
 }
 

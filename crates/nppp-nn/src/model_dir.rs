@@ -424,6 +424,10 @@ pub fn checkpoint_read_lock(dir: &Path) -> Result<Option<fs::File>> {
 /// is the OS's (`flock`), so a killed run never leaves a stale one.
 pub fn lock_model_dir(out: &Path) -> Result<ModelDirLock> {
     let created = !out.exists();
+    if created {
+        // Until its first checkpoint is in place (`save_checkpoint`).
+        nppp_files::track_pending_dir(out);
+    }
     fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let p = out.join(files::LOCK);
     let f = fs::OpenOptions::new()
@@ -463,6 +467,7 @@ pub struct ModelDirLock {
 
 impl Drop for ModelDirLock {
     fn drop(&mut self) {
+        nppp_files::untrack_pending_dir(&self.dir);
         if !self.created || checkpoint_dir(&self.dir).is_some() {
             return;
         }
@@ -504,6 +509,7 @@ pub fn save_checkpoint(out: &Path, c: &CheckpointContent, state: &TrainState) ->
             // A full disk or an unwritable file: the last complete checkpoint
             // stays as it was, and no partial one is left beside it.
             let _ = fs::remove_dir_all(&tmp);
+            nppp_files::untrack_pending_dir(&tmp);
             return Err(e);
         }
     };
@@ -523,7 +529,10 @@ pub fn save_checkpoint(out: &Path, c: &CheckpointContent, state: &TrainState) ->
         // Not a checkpoint (no state): debris of a crash, never read.
         fs::remove_dir_all(&cur).with_context(|| format!("removing {}", cur.display()))?;
     }
-    fs::rename(&tmp, &cur).with_context(|| format!("moving {} into place", tmp.display()))?;
+    // The model folder holds a checkpoint from here on: a signal no longer
+    // removes it.
+    nppp_files::rename_dir_into_place(&tmp, &cur, &[out])
+        .with_context(|| format!("moving {} into place", tmp.display()))?;
     nppp_files::crash_point("checkpoint:swapped");
     if old.exists() {
         fs::remove_dir_all(&old).with_context(|| format!("removing {}", old.display()))?;
@@ -541,6 +550,7 @@ fn write_checkpoint_tmp(
     if tmp.exists() {
         fs::remove_dir_all(tmp).with_context(|| format!("removing {}", tmp.display()))?;
     }
+    nppp_files::track_pending_dir(tmp);
     fs::create_dir_all(tmp).with_context(|| format!("creating {}", tmp.display()))?;
     let w = tmp.join(files::WEIGHTS);
     c.model

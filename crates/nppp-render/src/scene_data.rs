@@ -17,6 +17,15 @@ use nppp_scene::Scene;
 /// Measured peak resident memory of `nppp render`: 330-340 bytes a triangle
 /// with one to four icospheres of 1.3 M triangles; rounded up.
 pub const RENDER_BYTES_PER_TRIANGLE: u64 = 400;
+/// Memory a render holds per pixel: the film's exact sums (104 bytes), the
+/// image made of them, a reference image, and the preview; rounded up.
+pub const RENDER_BYTES_PER_PIXEL: u64 = 160;
+/// Memory a render holds per instance: its transforms and bounds, its
+/// share of the TLAS, and the per-instance tables of shading, lights and
+/// estimators (and the scene file's parsed text, still held). Measured peak
+/// resident memory of `nppp render` from 100,000 to 400,000 instances of a
+/// 12-triangle box: 1,074 bytes an instance more; rounded up.
+pub const RENDER_BYTES_PER_INSTANCE: u64 = 1200;
 
 /// Why `scene` cannot be rendered in the memory available, if it cannot:
 /// checked before the acceleration structures are built, so such a scene
@@ -40,14 +49,27 @@ fn render_memory_problem_within(scene: &Scene, available: u64) -> Option<String>
         .filter(|(_, u)| **u)
         .map(|(m, _)| m.triangles.len() as u64)
         .sum();
-    let need = triangles.saturating_mul(RENDER_BYTES_PER_TRIANGLE);
+    let instances = scene.instances.len() as u64;
+    let pixels = u64::from(scene.camera.width) * u64::from(scene.camera.height);
+    let parts = [
+        triangles.saturating_mul(RENDER_BYTES_PER_TRIANGLE),
+        instances.saturating_mul(RENDER_BYTES_PER_INSTANCE),
+        pixels.saturating_mul(RENDER_BYTES_PER_PIXEL),
+    ];
+    let need = parts.iter().fold(0u64, |a, &b| a.saturating_add(b));
     (need > available).then(|| {
+        let (w, h) = (scene.camera.width, scene.camera.height);
         format!(
-            "rendering its {triangles} triangles (of the meshes its instances use, each once) \
-             takes about {} (about {RENDER_BYTES_PER_TRIANGLE} bytes a triangle: the meshes, their \
-             trees and the merged copies), more than the {} of memory available: use fewer or \
-             coarser meshes (instances of one mesh share its triangles)",
+            "rendering its {triangles} triangles (of the meshes its instances use, each once), \
+             {instances} instances and a {w}x{h} image takes about {} ({} for the triangles at \
+             about {RENDER_BYTES_PER_TRIANGLE} bytes each: the meshes, their trees and the merged \
+             copies; {} for the instances; {} for the image), more than the {} of memory \
+             available: use fewer or coarser meshes (instances of one mesh share its \
+             triangles), fewer instances or a smaller image",
             nppp_files::format_bytes(need),
+            nppp_files::format_bytes(parts[0]),
+            nppp_files::format_bytes(parts[1]),
+            nppp_files::format_bytes(parts[2]),
             nppp_files::format_bytes(available)
         )
     })
@@ -346,12 +368,14 @@ mod tests {
             std::path::Path::new("memory.json"),
         )
         .unwrap();
-        // 320 triangles of "ball", once: 128,000 bytes.
-        assert_eq!(render_memory_problem_within(&scene, 128_000), None);
-        let msg = render_memory_problem_within(&scene, 127_999).unwrap();
+        // 320 triangles of "ball", once: 128,000 bytes; two instances,
+        // 2,400; an 8x8 image, 10,240.
+        assert_eq!(render_memory_problem_within(&scene, 140_640), None);
+        let msg = render_memory_problem_within(&scene, 140_639).unwrap();
         assert!(msg.contains("rendering its 320 triangles"), "{msg}");
+        assert!(msg.contains("2 instances and a 8x8 image"), "{msg}");
         assert!(
-            msg.contains("125.00 KiB") && msg.contains("of memory available"),
+            msg.contains("137.34 KiB") && msg.contains("of memory available"),
             "{msg}"
         );
         assert_eq!(render_memory_problem(&scene), None);

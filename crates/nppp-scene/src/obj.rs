@@ -39,7 +39,9 @@ struct Corner {
 
 /// Parses OBJ text. With `smooth`, every face must give a normal for every
 /// corner and the mesh carries them (normalized) as shading normals.
-pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
+/// `budget`: the bytes reading may hold besides the text; a file that needs
+/// more is refused as it is read, not when an allocation fails.
+pub(crate) fn parse_obj(text: &str, smooth: bool, budget: Option<u64>) -> Result<Mesh, ObjError> {
     // A byte-order mark (Windows editors write one) is not part of the
     // first line: left there, it hid that line's vertex.
     let text = text.strip_prefix('\u{feff}').unwrap_or(text);
@@ -53,12 +55,36 @@ pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
     // Classic Mac OS files end lines with a bare CR; `lines()` would see one
     // long line (and no faces).
     let bare_cr = !text.contains('\n') && text.contains('\r');
-    let lines: Vec<&str> = if bare_cr {
-        text.split('\r').collect()
+    let lines: Box<dyn Iterator<Item = &str>> = if bare_cr {
+        Box::new(text.split('\r'))
     } else {
-        text.lines().collect()
+        Box::new(text.lines())
     };
-    for (i, raw) in lines.into_iter().enumerate() {
+    // What reading holds: the lists so far and the triangles they make.
+    let held = |positions: usize, normals: usize, corners: usize, faces: usize| {
+        let triangles = corners.saturating_sub(2 * faces) as u64;
+        let per_triangle = 12 + if smooth { 36 } else { 0 };
+        (positions + normals) as u64 * 12
+            + corners as u64 * size_of::<Corner>() as u64
+            + faces as u64 * size_of::<(usize, usize, usize)>() as u64
+            + triangles * per_triangle
+    };
+    let over_budget = |need: u64, line: usize| -> Result<(), ObjError> {
+        match budget {
+            Some(b) if need > b => Err(at(
+                line,
+                format!(
+                    "reading the file takes about {} by this line, more than the {} of memory \
+                     available: use a coarser mesh",
+                    nppp_files::format_bytes(need),
+                    nppp_files::format_bytes(b)
+                ),
+            )),
+            _ => Ok(()),
+        }
+    };
+    let mut next_check = 1usize << 16;
+    for (i, raw) in lines.enumerate() {
         let line = i + 1;
         let content = raw.split('#').next().unwrap_or("");
         let mut tokens = content.split_whitespace();
@@ -83,6 +109,14 @@ pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
                         normals.len(),
                         line,
                     )?);
+                    // One face can hold millions of corners (a fan).
+                    if corners.len() % (1 << 16) == 0 {
+                        let faces = faces.len() + 1;
+                        over_budget(
+                            held(positions.len(), normals.len(), corners.len(), faces),
+                            line,
+                        )?;
+                    }
                 }
                 let n = corners.len() - start;
                 if n < 3 {
@@ -94,6 +128,12 @@ pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
                 faces.push((start, n, line));
             }
             _ => {}
+        }
+        let items = positions.len() + normals.len() + corners.len();
+        if items >= next_check {
+            next_check = items + (1 << 16);
+            let need = held(positions.len(), normals.len(), corners.len(), faces.len());
+            over_budget(need, line)?;
         }
     }
 
@@ -124,6 +164,10 @@ pub(crate) fn parse_obj(text: &str, smooth: bool) -> Result<Mesh, ObjError> {
         }
     }
 
+    over_budget(
+        held(positions.len(), normals.len(), corners.len(), faces.len()),
+        faces.last().map_or(0, |f| f.2),
+    )?;
     let triangle_count: usize = faces.iter().map(|&(_, n, _)| n - 2).sum();
     let mut triangles = Vec::with_capacity(triangle_count);
     let mut shading = smooth.then(|| Vec::with_capacity(triangle_count));
@@ -331,4 +375,36 @@ fn face_normals(face: &[Corner], normals: &[Vec3], line: usize) -> Result<Vec<Ve
             })
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fan of `n` triangles in one face: 1 corner a triangle.
+    fn fan(n: usize) -> String {
+        let mut s = String::new();
+        for k in 0..n + 2 {
+            let a = k as f32 * 0.001;
+            s += &format!("v {} {} 0\n", a.cos(), a.sin());
+        }
+        s += "f";
+        for k in 1..=n + 2 {
+            s += &format!(" {k}");
+        }
+        s + "\n"
+    }
+
+    /// A file that needs more than the budget is refused while it is read,
+    /// naming the line it got to; the same file within budget reads whole.
+    #[test]
+    fn a_file_past_its_memory_budget_is_refused_as_it_is_read() {
+        let text = fan(100_000);
+        let err = parse_obj(&text, false, Some(1 << 20)).unwrap_err();
+        assert!(err.message.contains("memory available"), "{}", err.message);
+        assert!(err.line.is_some());
+        let mesh = parse_obj(&text, false, Some(1 << 30)).unwrap();
+        assert_eq!(mesh.triangles.len(), 100_000);
+        assert_eq!(parse_obj(&text, false, None).unwrap(), mesh);
+    }
 }

@@ -184,7 +184,11 @@ impl Cx<'_> {
             .map_err(|e| obj_err(None, format!("cannot read: {e}")))?;
         // Lossy: a stray Latin-1 byte in a comment must not reject a mesh.
         let text = String::from_utf8_lossy(&bytes);
-        parse_obj(&text, smooth).map_err(|e| obj_err(e.line, e.message))
+        // Reading holds the text (twice, if it was not UTF-8) beside what
+        // it builds.
+        let text_bytes = (bytes.len() + text.len() * usize::from(bytes.len() != text.len())) as u64;
+        let budget = nppp_files::available_memory().map(|a| a.saturating_sub(text_bytes));
+        parse_obj(&text, smooth, budget).map_err(|e| obj_err(e.line, e.message))
     }
 
     /// How many triangles the mesh at `v` will have, where that is known

@@ -141,11 +141,13 @@ pub fn parse_material(json: &str, source: &str) -> Result<Material, SceneError> 
 pub fn parse_mesh(json: &str, source: &str) -> Result<Mesh, SceneError> {
     let file = Path::new(source);
     let root = parse_json(json, file)?;
-    Cx {
+    // The scene loader's memory check, as for a scene of this one mesh.
+    let mut meshes = Cx {
         file,
         dir: Path::new(""),
     }
-    .mesh(&root, "")
+    .meshes_within_memory(&[(String::new(), root)], "")?;
+    Ok(meshes.remove(0))
 }
 
 fn parse_json(json: &str, file: &Path) -> Result<Json, SceneError> {
@@ -451,9 +453,13 @@ impl Cx<'_> {
     /// mesh is made, then as each OBJ is read.
     fn meshes_within_memory(&self, entries: &[(String, Json)], path: &str) -> Res<Vec<Mesh>> {
         let available = nppp_files::available_memory();
+        // A mesh given alone (`parse_mesh`) is named by its source.
         let keys: Vec<String> = entries
             .iter()
-            .map(|(name, _)| join_key(path, name))
+            .map(|(name, _)| match (path, name.as_str()) {
+                ("", "") => String::new(),
+                _ => join_key(path, name),
+            })
             .collect();
         let predicted: Vec<u64> = entries
             .iter()
