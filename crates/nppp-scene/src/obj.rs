@@ -110,7 +110,7 @@ pub(crate) fn parse_obj(text: &str, smooth: bool, budget: Option<u64>) -> Result
                         line,
                     )?);
                     // One face can hold millions of corners (a fan).
-                    if corners.len() % (1 << 16) == 0 {
+                    if corners.len().is_multiple_of(1 << 16) {
                         let faces = faces.len() + 1;
                         over_budget(
                             held(positions.len(), normals.len(), corners.len(), faces),
