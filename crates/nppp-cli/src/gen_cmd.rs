@@ -455,7 +455,8 @@ fn load_flag_object(a: &GenArgs) -> Result<GenObject> {
         }
         None => {
             let (name, json) = mesh_spec(mesh_arg, a.smooth)?;
-            (name, nppp_scene::parse_mesh(&json, "--mesh")?)
+            let bvh = nppp_render::scene_data::RENDER_BYTES_PER_TRIANGLE;
+            (name, nppp_scene::parse_mesh_charged(&json, "--mesh", bvh)?)
         }
     };
     // The scene contract's rule for translucent objects, as the loader

@@ -22,9 +22,10 @@ pub const RENDER_BYTES_PER_TRIANGLE: u64 = 400;
 pub const RENDER_BYTES_PER_PIXEL: u64 = 160;
 /// Memory a render holds per instance: its transforms and bounds, its
 /// share of the TLAS, and the per-instance tables of shading, lights and
-/// estimators (and the scene file's parsed text, still held). Measured peak
-/// resident memory of `nppp render` from 100,000 to 400,000 instances of a
-/// 12-triangle box: 1,074 bytes an instance more; rounded up.
+/// estimators. An upper bound: the peak resident memory of `nppp render`
+/// from 100,000 to 400,000 instances of a 12-triangle box grew by 1,074
+/// bytes an instance, and most of that peak is the scene file's parse,
+/// over before the render starts; rounded up.
 pub const RENDER_BYTES_PER_INSTANCE: u64 = 1200;
 
 /// Why `scene` cannot be rendered in the memory available, if it cannot:

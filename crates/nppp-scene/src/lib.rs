@@ -18,6 +18,7 @@ pub use error::SceneError;
 pub use hash::{material_content_hash, mesh_content_hash, scene_content_hash};
 pub use load::{
     MAX_IMAGE_SIDE, MAX_WORLD_COORD, MESH_BYTES_PER_TRIANGLE, MIN_FLOAT_STEPS, MIN_WORLD_SIZE,
-    load_scene, mesh_units_problem, parse_material, parse_mesh, parse_scene, precision_problem,
+    load_scene, mesh_units_problem, parse_material, parse_mesh, parse_mesh_charged, parse_scene,
+    precision_problem,
 };
 pub use shapes::{MAX_ICOSPHERE_SUBDIVISIONS, box_mesh, icosphere_mesh, quad_mesh};

@@ -60,15 +60,25 @@ pub(crate) fn parse_obj(text: &str, smooth: bool, budget: Option<u64>) -> Result
     } else {
         Box::new(text.lines())
     };
-    // What reading holds: the lists so far and the triangles they make.
-    let held = |positions: usize, normals: usize, corners: usize, faces: usize| {
+    // What reading holds at most from here: the lists as allocated, the
+    // largest one's next growth (twice its size, beside it while it is
+    // copied), and the triangles the faces so far make.
+    let held = |lists: [(usize, usize); 4], corners: usize, faces: usize| {
+        let bytes = lists.map(|(capacity, size)| (capacity * size) as u64);
         let triangles = corners.saturating_sub(2 * faces) as u64;
         let per_triangle = 12 + if smooth { 36 } else { 0 };
-        (positions + normals) as u64 * 12
-            + corners as u64 * size_of::<Corner>() as u64
-            + faces as u64 * size_of::<(usize, usize, usize)>() as u64
-            + triangles * per_triangle
+        bytes.iter().sum::<u64>() + 2 * bytes.iter().max().unwrap_or(&0) + triangles * per_triangle
     };
+    macro_rules! lists {
+        () => {
+            [
+                (positions.capacity(), size_of::<Vec3>()),
+                (normals.capacity(), size_of::<Vec3>()),
+                (corners.capacity(), size_of::<Corner>()),
+                (faces.capacity(), size_of::<(usize, usize, usize)>()),
+            ]
+        };
+    }
     let over_budget = |need: u64, line: usize| -> Result<(), ObjError> {
         match budget {
             Some(b) if need > b => Err(at(
@@ -111,11 +121,7 @@ pub(crate) fn parse_obj(text: &str, smooth: bool, budget: Option<u64>) -> Result
                     )?);
                     // One face can hold millions of corners (a fan).
                     if corners.len().is_multiple_of(1 << 16) {
-                        let faces = faces.len() + 1;
-                        over_budget(
-                            held(positions.len(), normals.len(), corners.len(), faces),
-                            line,
-                        )?;
+                        over_budget(held(lists!(), corners.len(), faces.len() + 1), line)?;
                     }
                 }
                 let n = corners.len() - start;
@@ -132,8 +138,7 @@ pub(crate) fn parse_obj(text: &str, smooth: bool, budget: Option<u64>) -> Result
         let items = positions.len() + normals.len() + corners.len();
         if items >= next_check {
             next_check = items + (1 << 16);
-            let need = held(positions.len(), normals.len(), corners.len(), faces.len());
-            over_budget(need, line)?;
+            over_budget(held(lists!(), corners.len(), faces.len()), line)?;
         }
     }
 
@@ -165,7 +170,7 @@ pub(crate) fn parse_obj(text: &str, smooth: bool, budget: Option<u64>) -> Result
     }
 
     over_budget(
-        held(positions.len(), normals.len(), corners.len(), faces.len()),
+        held(lists!(), corners.len(), faces.len()),
         faces.last().map_or(0, |f| f.2),
     )?;
     let triangle_count: usize = faces.iter().map(|&(_, n, _)| n - 2).sum();
