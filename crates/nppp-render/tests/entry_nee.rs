@@ -17,6 +17,18 @@ fn render(mode: EstimatorMode, p: u32, nee: EntryNee, spp: u32, seed: u64) -> Im
         nppp_scene::load_scene(&repo_root().join("data/scenes/cornell-box.json")).unwrap();
     scene.camera.width = 48;
     scene.camera.height = 48;
+    render_scene(&scene, mode, p, nee, spp, seed)
+}
+
+fn render_scene(
+    scene: &nppp_scene::Scene,
+    mode: EstimatorMode,
+    p: u32,
+    nee: EntryNee,
+    spp: u32,
+    seed: u64,
+) -> Image {
+    let scene = scene.clone();
     let mut rs = if mode == EstimatorMode::Off {
         RenderScene::new(&scene)
     } else {
@@ -103,5 +115,51 @@ fn picked_vertex_nee_through_the_network_keeps_the_mean_and_beats_first_vertex()
             "P={p}: relMSE with first-vertex NEE {e_first:.5}, with picked-vertex NEE {e_picked:.5}"
         );
         assert_mean_near_pt(p, EntryNee::PickedVertex);
+    }
+}
+
+/// The committed knot lit from its side (a lamp beside it on a wall), light
+/// the network was never judged under: the picked vertex takes its light
+/// sample on the real surface, so the image mean stays PT's. With the
+/// vertex pushed along its predicted normal instead (before 2026-11-27)
+/// this scene was 22% dark at P = 0 and 4.2% at P = 1; on the surface,
+/// 2%-3% and 1.2% (64x64, 256 spp).
+#[test]
+fn a_knot_lit_from_the_side_keeps_its_mean() {
+    let scene = nppp_scene::parse_scene(
+        r#"{"camera": {"position": [150, 0, -350], "look_at": [150, 0, 0], "fov_y_deg": 40, "width": 40, "height": 40},
+            "materials": {"white": {"type": "diffuse", "albedo": [0.73, 0.73, 0.73]},
+                          "knot": {"type": "diffuse", "albedo": [0.8, 0.6, 0.35]},
+                          "lamp": {"type": "emitter", "radiance": [200, 160, 90]}},
+            "meshes": {"knot": {"procedural": {"type": "torus_knot"}},
+                       "wall": {"quad": [[0, -200, -200], [0, 200, -200], [0, 200, 400], [0, -200, 400]]},
+                       "lamp": {"quad": [[1, -30, -30], [1, 30, -30], [1, 30, 30], [1, -30, 30]]}},
+            "instances": [{"mesh": "wall", "material": "white"},
+                          {"mesh": "lamp", "material": "lamp"},
+                          {"mesh": "knot", "material": "knot",
+                           "transform": {"scale": 90, "rotate": {"axis": [0, 1, 1], "deg": 40}, "translate": [150, 0, 0]},
+                           "estimator": "../../models/cornell-knot.nppp"}],
+            "render": {"spp": 64, "max_bounces": 5}}"#,
+        &repo_root().join("data/scenes/side-lit.json"),
+    )
+    .unwrap();
+    let pt = render_scene(&scene, EstimatorMode::Off, 0, EntryNee::Off, 512, 5);
+    for (p, tolerance) in [(0, 0.06), (1, 0.025)] {
+        let nn = render_scene(
+            &scene,
+            EstimatorMode::Neural,
+            p,
+            EntryNee::PickedVertex,
+            256,
+            6,
+        );
+        let d = (sum(&nn) - sum(&pt)) / sum(&pt);
+        assert!(
+            d.abs() < tolerance,
+            "P = {p}: mean {:.4} against PT's {:.4} ({:+.1}%)",
+            sum(&nn),
+            sum(&pt),
+            100.0 * d
+        );
     }
 }
