@@ -14,6 +14,8 @@ gives M unless --max-bounces is set. `--scene-for LABEL SCENE` renders one
 configuration from another scene file, e.g. a copy of the scene whose
 instances name another estimator file, to compare two estimators in one
 run (the copy must differ only in `estimator` keys: PT renders --scene).
+`--nppp-for LABEL BINARY` renders one configuration with another build
+(a change against the build before it, in one run; PT uses --nppp).
 Standard library only; not part of the pipeline or of `make test`.
 
     python3 tools/equal_error.py --nppp ~/.cache/nppp-target/release/nppp \\
@@ -64,12 +66,18 @@ def main():
     ap.add_argument("--scene-for", nargs=2, action="append", default=[],
                     metavar=("LABEL", "SCENE"),
                     help="render configuration LABEL from SCENE instead of --scene")
+    ap.add_argument("--nppp-for", nargs=2, action="append", default=[],
+                    metavar=("LABEL", "BINARY"),
+                    help="render configuration LABEL with another nppp binary (a change "
+                         "against the build before it, in one run)")
     a = ap.parse_args()
     labels = {l for l, _ in a.config}
     scene_for = dict(a.scene_for)
-    for label in scene_for:
-        if label not in labels:
-            ap.error(f"--scene-for {label!r}: no --config has that label")
+    nppp_for = dict(a.nppp_for)
+    for flag, given in (("--scene-for", scene_for), ("--nppp-for", nppp_for)):
+        for label in given:
+            if label not in labels:
+                ap.error(f"{flag} {label!r}: no --config has that label")
     common = ["--max-bounces", str(a.max_bounces)] if a.max_bounces is not None else []
     common += shlex.split(a.common)
     tmp = tempfile.mkdtemp(prefix="nppp-equal-error-")
@@ -84,7 +92,7 @@ def main():
             print(f"reference: PT at {a.reference_spp} spp -> {reference}", file=sys.stderr)
             render(a.nppp, a.scene, a.reference_spp, 1000, ["--estimators", "off"] + common,
                    None, reference)
-        measure(a, configs, scene_for, common, reference, out, times, errs, means)
+        measure(a, configs, scene_for, nppp_for, common, reference, out, times, errs, means)
     finally:
         # The working image goes; a reference rendered here stays (the
         # table names it, for the next run's --reference).
@@ -94,12 +102,13 @@ def main():
     report(a, configs, reference, times, errs, means)
 
 
-def measure(a, configs, scene_for, common, reference, out, times, errs, means):
+def measure(a, configs, scene_for, nppp_for, common, reference, out, times, errs, means):
     """Renders every configuration in alternating rounds into the lists."""
     for rnd in range(1, a.rounds + 1):
         for label, flags in configs:
             scene = scene_for.get(label, a.scene)
-            t, r, m = render(a.nppp, scene, a.spp, rnd, flags + common, reference, out)
+            nppp = nppp_for.get(label, a.nppp)
+            t, r, m = render(nppp, scene, a.spp, rnd, flags + common, reference, out)
             times[label].append(t)
             errs[label].append(r)
             means[label].append(m)
