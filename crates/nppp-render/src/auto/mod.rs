@@ -191,9 +191,11 @@ pub struct PilotOptions {
     /// were not checked with their error grows, most at small P, and no
     /// pilot sees it (the knot beside a lamp at its side: 4.2% dark at
     /// P = 1, 0.7% at P = 2; its pilot measured +1.3%; BENCHMARKS.md,
-    /// "Where NPPP loses"). P = 1 was where these objects tied or beat PT
-    /// by a few percent (gold 1.06x-1.09x), so auto now leaves them off in
-    /// most scenes; `--estimators neural --min-bounces 1` still runs them.
+    /// "Where NPPP loses"). Since the picked vertex takes its light sample
+    /// on the real surface that knot is 1.3% dark at P = 1, but P = 1 no
+    /// longer wins anywhere measured (gold 0.96x-0.98x, the default scene
+    /// 0.93x), so P = 2 stays the smallest tried;
+    /// `--estimators neural --min-bounces 1` still runs them.
     pub min_p_light_sampled: u32,
     /// Smallest P tried for a translucent object's estimator. 0 by default:
     /// what the camera sees of a dense medium is subsurface transport, which
