@@ -31,9 +31,9 @@ pub struct EntryBatch {
     pub skipped: Vec<SkippedVertices>,
     walk_vertices: Vec<WalkVertex>,
     /// Per row of a batch with a vertex head: the grid cell, then the
-    /// triangle, its vertex meets the real surface at
+    /// site of the triangle, its vertex meets the real surface at
     /// ([`crate::surface_snap`]).
-    snap_triangles: Vec<Option<u32>>,
+    snap_sites: Vec<Option<u32>>,
 }
 
 impl EntryBatch {
@@ -118,38 +118,35 @@ impl EntryBatch {
                     {
                         let macs = sampler.vertex_multiply_adds().unwrap_or(0);
                         stats.count_decoder_rows(verts.len(), macs, 0);
-                        let tracer = scene.object_tracer(est, 0);
                         let snap = est.surface_snap.as_ref();
                         // Where each vertex meets the real surface: a grid
-                        // cell, then its triangle and normals, read for the
+                        // cell, then its triangle's site, read for the
                         // whole batch before any is used (each read is a
-                        // cache miss; one vertex after the other, they
-                        // took 6%-10% of a render).
-                        self.snap_triangles.clear();
+                        // cache miss; one vertex after the other, the
+                        // lookups took 6%-10% of a render).
+                        self.snap_sites.clear();
                         if let Some(snap) = snap {
-                            self.snap_triangles.extend(verts.iter().map(|v| {
+                            self.snap_sites.extend(verts.iter().map(|v| {
                                 let cell = snap.cell_of(est.sphere.from_unit_point(v.position));
                                 if let Some(c) = cell {
                                     snap.prefetch_cell(c);
                                 }
                                 cell
                             }));
-                            for t in &mut self.snap_triangles {
-                                *t = t.and_then(|c| snap.triangle_in(c));
-                                if let Some(t) = *t {
-                                    snap.prefetch_triangle(t);
-                                    tracer.prefetch_normals(t);
+                            for s in &mut self.snap_sites {
+                                *s = s.and_then(|c| snap.site_in(c));
+                                if let Some(s) = *s {
+                                    snap.prefetch_site(s);
                                 }
                             }
                         }
                         for (k, (&i, v)) in rows.iter().zip(verts).enumerate() {
                             let depth = paths[self.entries[i].0].depth;
                             let budget = max_bounces.saturating_sub(depth);
-                            let triangle = self.snap_triangles.get(k).copied().flatten();
+                            let site = self.snap_sites.get(k).copied().flatten();
                             let on_surface = |p: Vec3| {
-                                let at = snap?.closest_on(triangle?, p)?;
-                                let (ng, ns) = tracer.normals_at(&at);
-                                Some((at.point, ng, ns))
+                                let at = snap?.closest_on(site?, p)?;
+                                Some((at.point, at.ng, at.ns))
                             };
                             self.skipped[i] =
                                 network_skipped(v, &est.sphere, bsdf, budget, on_surface);

@@ -93,36 +93,10 @@ impl ObjectTracer<'_> {
         })
     }
 
-    /// Starts reading triangle `prim`'s normals and returns at once.
-    #[inline]
-    pub fn prefetch_normals(&self, prim: u32) {
-        crate::bvh::prefetch_item(self.geo_normals, prim as usize);
-        if let Some(n) = self.shading_normals {
-            crate::bvh::prefetch_item(n, prim as usize);
-        }
-    }
-
-    /// The geometric and shading normals at a point of the mesh (both
-    /// on the mesh's outward side).
-    pub fn normals_at(&self, at: &crate::surface_snap::MeshPoint) -> (Vec3, Vec3) {
-        let ng = self.geo_normals[at.prim as usize];
-        (ng, self.shading_normal_at(at.prim, at.b1, at.b2, ng))
-    }
-
     /// The interpolated vertex normal at a hit, on `ng`'s side (`ng` for flat meshes).
     fn shading_normal(&self, h: &crate::accel::ObjectHit, ng: Vec3) -> Vec3 {
-        self.shading_normal_at(h.prim, h.b1, h.b2, ng)
-    }
-
-    /// The interpolated vertex normal at barycentrics `(b1, b2)` of
-    /// triangle `prim`, on `ng`'s side (`ng` for flat meshes).
-    fn shading_normal_at(&self, prim: u32, b1: f32, b2: f32, ng: Vec3) -> Vec3 {
         match self.shading_normals {
-            Some(n) => {
-                let [n0, n1, n2] = n[prim as usize];
-                let s = (n0 * (1.0 - b1 - b2) + n1 * b1 + n2 * b2).normalize_or_zero();
-                if s.dot(ng) > 0.0 { s } else { ng }
-            }
+            Some(n) => crate::surface::interpolated_normal(n[h.prim as usize], h.b1, h.b2, ng),
             None => ng,
         }
     }

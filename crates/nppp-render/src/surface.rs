@@ -53,6 +53,16 @@ impl SurfaceKind {
 /// a few hundred ulps of the coordinates involved.
 pub const OFFSET_REL: f32 = 2e-5;
 
+/// A smooth triangle's vertex normals `n` interpolated at barycentrics
+/// `(b1, b2)`, on geometric normal `ng`'s side; `ng` where they point the
+/// other way (a shading normal on the far side of the surface is
+/// meaningless) or are zero (a flat mesh).
+#[inline]
+pub fn interpolated_normal(n: [Vec3; 3], b1: f32, b2: f32, ng: Vec3) -> Vec3 {
+    let s = (n[0] * (1.0 - b1 - b2) + n[1] * b1 + n[2] * b2).normalize_or_zero();
+    if s.dot(ng) > 0.0 { s } else { ng }
+}
+
 /// The shading frame at a vertex and the geometric normal on the side the
 /// path arrived from. Two-sided materials see the surface from wo's side;
 /// glass keeps front = outside.

@@ -35,15 +35,26 @@ pub const RESOLUTION: u32 = 64;
 pub const REACH: f32 = 0.2;
 const NONE: u32 = u32::MAX;
 
-/// A point of the mesh: where a triangle was met and its barycentrics.
+/// A point of the mesh with its normals, mesh space.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct MeshPoint {
-    /// Mesh space.
+pub struct SurfacePoint {
     pub point: Vec3,
-    /// Triangle index in the mesh's own order.
-    pub prim: u32,
-    pub b1: f32,
-    pub b2: f32,
+    /// Unit geometric normal, on the mesh's outward side.
+    pub ng: Vec3,
+    /// Shading normal (the vertex normals interpolated, on `ng`'s side;
+    /// `ng` for flat meshes).
+    pub ns: Vec3,
+}
+
+/// One triangle some cell knows, with everything a lookup reads of it in
+/// one place (two cache lines), so that a lookup is two scattered reads:
+/// its cell, then this.
+#[derive(Clone, Copy, Debug)]
+struct Site {
+    corners: [Vec3; 3],
+    ng: Vec3,
+    /// The triangle's vertex normals (a smooth mesh), else zero.
+    vertex_normals: [Vec3; 3],
 }
 
 /// The closest-triangle grid of one mesh (see the module doc).
@@ -52,10 +63,12 @@ pub struct SurfaceSnap {
     origin: Vec3,
     /// Cells per mesh unit.
     inv_cell: f32,
-    /// Per cell (x fastest): the triangle closest to its centre, or `NONE`.
+    /// Per cell (x fastest): the site of the triangle closest to its
+    /// centre, or `NONE`.
     cells: Vec<u32>,
-    /// Per triangle: its corners, mesh space.
-    triangles: Vec<[Vec3; 3]>,
+    /// The triangles the cells know: at most one per cell, whatever the
+    /// mesh's size (the knot's grid knows 10% of its triangles).
+    sites: Vec<Site>,
     /// The squared distance a point may be moved: REACH and a cell's
     /// diagonal (mesh units).
     max_move2: f32,
@@ -67,17 +80,13 @@ impl SurfaceSnap {
         let res = RESOLUTION as usize;
         let cell = 2.0 * sphere.radius / RESOLUTION as f32;
         let origin = sphere.center - Vec3::splat(sphere.radius);
-        let triangles: Vec<[Vec3; 3]> = mesh
-            .triangles
-            .iter()
-            .map(|t| t.map(|i| mesh.positions[i as usize]))
-            .collect();
+        let corners = |t: u32| mesh.triangles[t as usize].map(|i| mesh.positions[i as usize]);
         let centre = |i: usize| {
             let (x, y, z) = (i % res, (i / res) % res, i / (res * res));
             origin + (Vec3::new(x as f32, y as f32, z as f32) + 0.5) * cell
         };
         let dist2 = |i: usize, t: u32| {
-            let [a, b, c] = triangles[t as usize];
+            let [a, b, c] = corners(t);
             let p = centre(i);
             p.distance_squared(closest_point_on_triangle(p, a, b, c).0)
         };
@@ -88,18 +97,19 @@ impl SurfaceSnap {
         };
         // Seeds: every cell a triangle's box reaches knows that triangle.
         let mut best: Vec<(f32, u32)> = vec![(f32::INFINITY, NONE); res * res * res];
-        for (t, [a, b, c]) in triangles.iter().enumerate() {
+        for t in 0..mesh.triangles.len() as u32 {
+            let [a, b, c] = corners(t);
             if !(a.is_finite() && b.is_finite() && c.is_finite()) {
                 continue;
             }
-            let (lo, hi) = (cell_of(a.min(*b).min(*c)), cell_of(a.max(*b).max(*c)));
+            let (lo, hi) = (cell_of(a.min(b).min(c)), cell_of(a.max(b).max(c)));
             for z in lo.z..=hi.z {
                 for y in lo.y..=hi.y {
                     for x in lo.x..=hi.x {
                         let i = index(UVec3::new(x, y, z), res);
-                        let d = dist2(i, t as u32);
+                        let d = dist2(i, t);
                         if d < best[i].0 {
-                            best[i] = (d, t as u32);
+                            best[i] = (d, t);
                         }
                     }
                 }
@@ -115,10 +125,10 @@ impl SurfaceSnap {
             best.par_chunks_mut(res * res)
                 .enumerate()
                 .for_each(|(z, slice)| {
-                    for (k, slot) in slice.iter_mut().enumerate() {
+                    for (k, known) in slice.iter_mut().enumerate() {
                         let (x, y) = ((k % res) as i32, (k / res) as i32);
                         let i = z * res * res + k;
-                        if slot.0 <= settled {
+                        if known.0 <= settled {
                             continue;
                         }
                         for dz in -1..=1 {
@@ -133,12 +143,12 @@ impl SurfaceSnap {
                                         res,
                                     )]
                                     .1;
-                                    if t == NONE || t == slot.1 {
+                                    if t == NONE || t == known.1 {
                                         continue;
                                     }
                                     let d = dist2(i, t);
-                                    if d < slot.0 {
-                                        *slot = (d, t);
+                                    if d < known.0 {
+                                        *known = (d, t);
                                     }
                                 }
                             }
@@ -146,16 +156,38 @@ impl SurfaceSnap {
                     }
                 });
         }
+        // Cells out of reach forget their triangle; the others point at a
+        // site, one per triangle they know.
         let reach2 = (REACH * sphere.radius).powi(2);
+        let mut site_of = std::collections::HashMap::new();
+        let mut sites = Vec::new();
         let cells = best
             .into_iter()
-            .map(|(d, t)| if d <= reach2 { t } else { NONE })
+            .map(|(d, t)| {
+                if d > reach2 {
+                    return NONE;
+                }
+                *site_of.entry(t).or_insert_with(|| {
+                    let c = corners(t);
+                    let vertex_normals = mesh
+                        .shading_normals
+                        .as_ref()
+                        .and_then(|n| n.get(t as usize).copied())
+                        .unwrap_or([Vec3::ZERO; 3]);
+                    sites.push(Site {
+                        corners: c,
+                        ng: nppp_geom::unit_normal((c[1] - c[0]).cross(c[2] - c[0])),
+                        vertex_normals,
+                    });
+                    (sites.len() - 1) as u32
+                })
+            })
             .collect();
         Self {
             origin,
             inv_cell: 1.0 / cell,
             cells,
-            triangles,
+            sites,
             max_move2: (REACH * sphere.radius + cell * 3f32.sqrt()).powi(2),
         }
     }
@@ -163,13 +195,13 @@ impl SurfaceSnap {
     /// The point of the mesh closest to mesh-space `p` as the grid knows it
     /// (the closest point of the triangle nearest the centre of `p`'s cell,
     /// or of the border cell nearest `p` outside the grid), or `None` where
-    /// that triangle is farther than about [`REACH`] from `p`. The three
-    /// steps below, for callers that start a batch's reads before using
-    /// any (each is a cache miss: the grid, then the triangle).
+    /// that triangle is farther than about [`REACH`] from `p`. The steps
+    /// below, for callers that start a batch's reads before using any
+    /// (each is a cache miss: the cell, then its site).
     #[inline]
-    pub fn closest(&self, p: Vec3) -> Option<MeshPoint> {
-        let t = self.triangle_in(self.cell_of(p)?)?;
-        self.closest_on(t, p)
+    pub fn closest(&self, p: Vec3) -> Option<SurfacePoint> {
+        let site = self.site_in(self.cell_of(p)?)?;
+        self.closest_on(site, p)
     }
 
     /// The cell `p` reads (clamped to the grid), or `None` for NaN.
@@ -184,25 +216,26 @@ impl SurfaceSnap {
         Some(index(g.as_uvec3(), RESOLUTION as usize) as u32)
     }
 
-    /// The triangle cell `cell` knows, if one is within reach of it.
+    /// The site of the triangle cell `cell` knows, if one is within reach.
     #[inline]
-    pub fn triangle_in(&self, cell: u32) -> Option<u32> {
+    pub fn site_in(&self, cell: u32) -> Option<u32> {
         self.cells
             .get(cell as usize)
             .copied()
             .filter(|&t| t != NONE)
     }
 
-    /// The closest point of triangle `t` to `p`, if within the reach.
+    /// The closest point of site `site`'s triangle to `p`, with its
+    /// normals, if within the reach.
     #[inline]
-    pub fn closest_on(&self, t: u32, p: Vec3) -> Option<MeshPoint> {
-        let [a, b, c] = *self.triangles.get(t as usize)?;
+    pub fn closest_on(&self, site: u32, p: Vec3) -> Option<SurfacePoint> {
+        let s = self.sites.get(site as usize)?;
+        let [a, b, c] = s.corners;
         let (point, b1, b2) = closest_point_on_triangle(p, a, b, c);
-        (p.distance_squared(point) <= self.max_move2).then_some(MeshPoint {
+        (p.distance_squared(point) <= self.max_move2).then(|| SurfacePoint {
             point,
-            prim: t,
-            b1,
-            b2,
+            ng: s.ng,
+            ns: crate::surface::interpolated_normal(s.vertex_normals, b1, b2, s.ng),
         })
     }
 
@@ -212,15 +245,15 @@ impl SurfaceSnap {
         crate::bvh::prefetch_item(&self.cells, cell as usize);
     }
 
-    /// Starts reading triangle `t`'s corners and returns at once.
+    /// Starts reading site `site` and returns at once.
     #[inline]
-    pub fn prefetch_triangle(&self, t: u32) {
-        crate::bvh::prefetch_item(&self.triangles, t as usize);
+    pub fn prefetch_site(&self, site: u32) {
+        crate::bvh::prefetch_item(&self.sites, site as usize);
     }
 
     /// Bytes held.
     pub fn memory_bytes(&self) -> usize {
-        self.cells.len() * 4 + self.triangles.len() * 36
+        self.cells.len() * size_of::<u32>() + self.sites.len() * size_of::<Site>()
     }
 }
 
@@ -264,11 +297,11 @@ mod tests {
             let p = Vec3::new(3.0, -2.0, 5.0) + dir * r;
             let got = snap.closest(p).expect("near the surface");
             let want = exact(&mesh, p);
-            let t = mesh.triangles[got.prim as usize].map(|i| mesh.positions[i as usize]);
-            let on = t[0] * (1.0 - got.b1 - got.b2) + t[1] * got.b1 + t[2] * got.b2;
+            let on = exact(&mesh, got.point);
+            assert!(on.distance(got.point) < 1e-5, "the point is on the mesh");
             assert!(
-                on.distance(got.point) < 1e-5,
-                "the point is on its triangle"
+                (got.ng.length() - 1.0).abs() < 1e-5 && got.ns == got.ng,
+                "a flat mesh"
             );
             assert!(
                 p.distance(got.point) <= p.distance(want) + 2.0 * cell,
