@@ -67,7 +67,8 @@ pub struct SurfaceSnap {
     /// centre, or `NONE`.
     cells: Vec<u32>,
     /// The triangles the cells know: at most one per cell, whatever the
-    /// mesh's size (the knot's grid knows 10% of its triangles).
+    /// mesh's size (the knot's grid knows 12,370 of its 327,680
+    /// triangles: 2.1 MB with the cells).
     sites: Vec<Site>,
     /// The squared distance a point may be moved: REACH and a cell's
     /// diagonal (mesh units).
