@@ -316,6 +316,15 @@ fn shown(v: f64) -> String {
     }
 }
 
+/// [`shown`] for an f32 flag, without the digits widening it adds.
+fn shown_f32(v: f32) -> String {
+    if v.is_finite() && v != 0.0 && !(1e-3..1e6).contains(&v.abs()) {
+        format!("{v:.3e}")
+    } else {
+        format!("{v}")
+    }
+}
+
 pub fn run(a: &RenderArgs) -> Result<()> {
     let mut scene = nppp_scene::load_scene(&a.scene)?;
     scene
@@ -325,7 +334,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     anyhow::ensure!(
         a.exposure.is_finite() && a.exposure.abs() <= 64.0,
         "--exposure {}: give stops between -64 and 64",
-        shown(f64::from(a.exposure))
+        shown_f32(a.exposure)
     );
     // Read the reference first: a bad reference should fail before minutes of rendering.
     let reference = match &a.reference {

@@ -424,10 +424,6 @@ pub fn checkpoint_read_lock(dir: &Path) -> Result<Option<fs::File>> {
 /// is the OS's (`flock`), so a killed run never leaves a stale one.
 pub fn lock_model_dir(out: &Path) -> Result<ModelDirLock> {
     let created = !out.exists();
-    if created {
-        // Until its first checkpoint is in place (`save_checkpoint`).
-        nppp_files::track_pending_dir(out);
-    }
     fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let p = out.join(files::LOCK);
     let f = fs::OpenOptions::new()
@@ -437,11 +433,19 @@ pub fn lock_model_dir(out: &Path) -> Result<ModelDirLock> {
         .open(&p)
         .with_context(|| format!("opening {}", p.display()))?;
     match f.try_lock() {
-        Ok(()) => Ok(ModelDirLock {
-            _file: f,
-            dir: out.to_path_buf(),
-            created,
-        }),
+        Ok(()) => {
+            if created {
+                // Removed by a signal until its first checkpoint is in place
+                // (`save_checkpoint`). Only once the lock is this run's: a
+                // run that lost the race for the folder must not remove it.
+                nppp_files::track_pending_dir(out);
+            }
+            Ok(ModelDirLock {
+                _file: f,
+                dir: out.to_path_buf(),
+                created,
+            })
+        }
         Err(fs::TryLockError::WouldBlock) => bail!(
             "{}: another `nppp train` is writing this model directory; wait for it, or train \
              into another --out",

@@ -10,16 +10,20 @@
 //! push along the predicted normal (`NETWORK_VERTEX_OFFSET`) suited the
 //! Cornell box's ceiling lamp, and a knot lit from the side rendered 25%
 //! dark at P = 0 (BENCHMARKS.md, "The picked vertex on the real surface").
-//! Moved to the closest point of the real mesh, the vertex takes its light
-//! sample where a real path could have scattered, with the real normal,
-//! and self-shadowing is exact.
+//! Moved onto the real mesh (and lifted 0.01 radii off it along the real
+//! normal: see `SURFACE_VERTEX_LIFT`), the vertex takes its light sample
+//! where a real path could have scattered, with the real normals, and the
+//! object shadows it as it would a real vertex (but for creases and
+//! contacts narrower than the lift).
 //!
 //! The closest point comes from a grid over the sphere's cube that stores,
 //! per cell, the triangle closest to the cell's centre (cells farther than
 //! [`REACH`] from the surface store none), built by jump flooding from the
 //! cells the triangles cross. A lookup reads one cell and one triangle and
 //! projects the point onto it: the answer is always a point of the mesh,
-//! within about a cell of the exact closest point.
+//! at most about two cells farther from the vertex than the mesh's
+//! closest point (where two sheets are equally near, it may be on the
+//! other one: `network_skipped` refuses a point that faces away).
 
 use glam::{UVec3, Vec3};
 use nppp_geom::BoundingSphere;
@@ -30,8 +34,10 @@ use rayon::prelude::*;
 /// Cells per axis of the grid over the sphere's cube: cells of 1/32 of
 /// the radius (the knot's tube is about 0.2 radii thick).
 pub const RESOLUTION: u32 = 64;
-/// Farthest a predicted vertex is moved, in sphere radii: a vertex farther
-/// from every triangle keeps the fixed push (`NETWORK_VERTEX_OFFSET`).
+/// How near the surface a cell's centre must be for the cell to know a
+/// triangle, in sphere radii; a vertex is moved at most this and a cell's
+/// diagonal (about 0.25 radii), and one farther keeps the fixed push
+/// (`NETWORK_VERTEX_OFFSET`).
 pub const REACH: f32 = 0.2;
 const NONE: u32 = u32::MAX;
 
@@ -39,7 +45,8 @@ const NONE: u32 = u32::MAX;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SurfacePoint {
     pub point: Vec3,
-    /// Unit geometric normal, on the mesh's outward side.
+    /// Unit geometric normal, the triangle's winding side (zero for a
+    /// degenerate triangle).
     pub ng: Vec3,
     /// Shading normal (the vertex normals interpolated, on `ng`'s side;
     /// `ng` for flat meshes).

@@ -213,13 +213,14 @@ pub(super) fn render_with(
 /// too) and resized to the plan's resolution.
 fn load_for_bench(path: &Path, plan: &Plan) -> Result<nppp_scene::Scene> {
     let mut scene = nppp_scene::load_scene(path)?;
-    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene) {
-        bail!("{}: {problem}", path.display());
-    }
     scene
         .camera
         .resize(Some(plan.scale), None, None)
         .map_err(anyhow::Error::msg)?;
+    // At the resolution the bench renders (the image counts).
+    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene) {
+        bail!("{}: {problem}", path.display());
+    }
     Ok(scene)
 }
 

@@ -160,13 +160,13 @@ pub fn parse_material(json: &str, source: &str) -> Result<Material, SceneError> 
 /// a relative OBJ path is read from the current folder. `source` as in
 /// [`parse_material`].
 pub fn parse_mesh(json: &str, source: &str) -> Result<Mesh, SceneError> {
-    parse_mesh_charged(json, source, 0)
+    parse_mesh_charged(json, source, MESH_BYTES_PER_TRIANGLE)
 }
 
-/// [`parse_mesh`] for a caller that will hold `charge` more bytes a
-/// triangle beside the mesh (`nppp gen`'s BVH): refused before the mesh is
-/// built where the triangle count is known from the JSON (shapes and
-/// procedural objects) and the whole would not fit.
+/// [`parse_mesh`] for a caller that will hold `charge` bytes a triangle in
+/// all, the mesh included (`nppp gen`: the mesh and its BVH): refused
+/// before the mesh is built where the triangle count is known from the
+/// JSON (shapes and procedural objects) and that would not fit.
 pub fn parse_mesh_charged(json: &str, source: &str, charge: u64) -> Result<Mesh, SceneError> {
     let file = Path::new(source);
     let root = parse_json(json, file)?;
@@ -178,7 +178,7 @@ pub fn parse_mesh_charged(json: &str, source: &str, charge: u64) -> Result<Mesh,
         cx.predicted_triangles(&root, ""),
         nppp_files::available_memory(),
     ) {
-        let need = triangles.saturating_mul(MESH_BYTES_PER_TRIANGLE.saturating_add(charge));
+        let need = triangles.saturating_mul(MESH_BYTES_PER_TRIANGLE.max(charge));
         if need > available {
             return Err(cx.invalid(
                 "",
