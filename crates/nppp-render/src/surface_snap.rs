@@ -320,6 +320,36 @@ mod tests {
         }
     }
 
+    /// A smooth mesh's lookups carry its vertex normals, interpolated at
+    /// the point found: on a sphere, close to the radial direction there
+    /// (the flat facets' normals are up to half a facet's angle off it).
+    #[test]
+    fn a_smooth_mesh_gives_interpolated_normals() {
+        let (mut mesh, sphere) = sphere_mesh();
+        let centre = Vec3::new(3.0, -2.0, 5.0);
+        mesh.shading_normals = Some(
+            mesh.triangles
+                .iter()
+                .map(|t| t.map(|i| (mesh.positions[i as usize] - centre).normalize()))
+                .collect(),
+        );
+        let snap = SurfaceSnap::build(&mesh, &sphere);
+        let mut rng = nppp_geom::SampleRng::new(9, 0, 0);
+        let (mut worst_ns, mut worst_ng) = (1.0f32, 1.0f32);
+        for _ in 0..300 {
+            let dir = nppp_geom::sampling::uniform_sphere(rng.uniform2());
+            let got = snap.closest(centre + dir * 1.05).expect("near the surface");
+            let radial = (got.point - centre).normalize();
+            assert!(got.ns.dot(got.ng) > 0.0, "on the geometric normal's side");
+            worst_ns = worst_ns.min(got.ns.dot(radial));
+            worst_ng = worst_ng.min(got.ng.dot(radial));
+        }
+        assert!(
+            worst_ns > 0.9995 && worst_ns > worst_ng,
+            "{worst_ns} vs flat {worst_ng}"
+        );
+    }
+
     #[test]
     fn far_and_broken_points_get_none() {
         let (mesh, sphere) = sphere_mesh();
