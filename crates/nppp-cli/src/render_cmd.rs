@@ -327,10 +327,25 @@ fn shown_f32(v: f32) -> String {
 
 pub fn run(a: &RenderArgs) -> Result<()> {
     let mut scene = nppp_scene::load_scene(&a.scene)?;
+    let scene_size = (scene.camera.width, scene.camera.height);
     scene
         .camera
         .resize(a.scale, a.width, a.height)
         .map_err(anyhow::Error::msg)?;
+    // A side below half a pixel is rendered 1 pixel: said, not silent.
+    if let Some(s) = a.scale
+        && (f64::from(scene_size.0) * s < 0.5 || f64::from(scene_size.1) * s < 0.5)
+    {
+        nppp_files::note!(
+            "note: --scale {}: the image would be under a pixel on a side ({}x{} in the scene); \
+             rendering {}x{}",
+            shown(s),
+            scene_size.0,
+            scene_size.1,
+            scene.camera.width,
+            scene.camera.height
+        );
+    }
     anyhow::ensure!(
         a.exposure.is_finite() && a.exposure.abs() <= 64.0,
         "--exposure {}: give stops between -64 and 64",
@@ -725,7 +740,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     };
     match &a.png {
         Some(p) => image_io::write_exr_and_preview(&img, &a.out, Some((p, &preview)))
-            .with_context(|| "--png: writing the EXR and its preview")?,
+            // The error names the file that failed (the EXR or the PNG).
+            .with_context(|| "writing the EXR (--out) and its preview (--png)")?,
         None => image_io::write_exr(&img, &a.out).with_context(|| "writing the EXR")?,
     }
     let m = img.mean();
