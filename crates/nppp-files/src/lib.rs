@@ -7,7 +7,10 @@
 //!   the target. A reader (or a kill at any instant) sees the old file or the
 //!   new one, never a half-written one; a writer dropped before
 //!   [`AtomicFile::commit`] removes its temporary file, and a command ended
-//!   by a signal removes every one still open ([`remove_pending_temp_files`]).
+//!   by a signal removes every one still open ([`remove_pending_temp_files`]),
+//!   with every folder still being assembled ([`track_pending_dir`],
+//!   [`rename_dir_into_place`]: a checkpoint's `checkpoint.tmp/`, a fresh
+//!   model folder before its first checkpoint).
 //! - [`ensure_not_input`]: an output path that names one of the command's
 //!   inputs (the same file, under any spelling or hard link) is refused
 //!   before any work, so a slip of the flags cannot overwrite the training
