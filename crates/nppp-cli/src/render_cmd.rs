@@ -307,18 +307,14 @@ fn check_outputs(a: &RenderArgs, scene: &nppp_scene::Scene) -> Result<()> {
 }
 
 /// A flag's number as a message shows it: in e-notation when huge or tiny
-/// (`--exposure 1e30` printed 31 digits).
-fn shown(v: f64) -> String {
-    if v.is_finite() && v != 0.0 && !(1e-3..1e6).contains(&v.abs()) {
-        format!("{v:.3e}")
-    } else {
-        format!("{v}")
-    }
-}
-
-/// [`shown`] for an f32 flag, without the digits widening it adds.
-fn shown_f32(v: f32) -> String {
-    if v.is_finite() && v != 0.0 && !(1e-3..1e6).contains(&v.abs()) {
+/// (`--exposure 1e30` printed 31 digits), else as given (an f32 is printed
+/// as an f32: widened to f64, 70.3 printed 70.30000305175781).
+fn shown<T>(v: T) -> String
+where
+    T: Copy + Into<f64> + std::fmt::Display + std::fmt::LowerExp,
+{
+    let x: f64 = v.into();
+    if x.is_finite() && x != 0.0 && !(1e-3..1e6).contains(&x.abs()) {
         format!("{v:.3e}")
     } else {
         format!("{v}")
@@ -349,7 +345,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     anyhow::ensure!(
         a.exposure.is_finite() && a.exposure.abs() <= 64.0,
         "--exposure {}: give stops between -64 and 64",
-        shown_f32(a.exposure)
+        shown(a.exposure)
     );
     // Read the reference first: a bad reference should fail before minutes of rendering.
     let reference = match &a.reference {
