@@ -170,38 +170,16 @@ pub fn parse_mesh(json: &str, source: &str) -> Result<Mesh, SceneError> {
 pub fn parse_mesh_charged(json: &str, source: &str, charge: u64) -> Result<Mesh, SceneError> {
     let file = Path::new(source);
     let root = parse_json(json, file)?;
-    let cx = Cx {
-        file,
-        dir: Path::new(""),
-    };
-    if let (Some(triangles), Some(available)) = (
-        cx.predicted_triangles(&root, ""),
-        nppp_files::available_memory(),
-    ) {
-        let need = triangles.saturating_mul(MESH_BYTES_PER_TRIANGLE.max(charge));
-        if need > available {
-            return Err(cx.invalid(
-                "",
-                format!(
-                    "the mesh has {} triangles; it takes about {} with what is built from it, \
-                     more than the {} of memory available: use a coarser mesh",
-                    count_text(triangles),
-                    nppp_files::format_bytes(need),
-                    nppp_files::format_bytes(available)
-                ),
-            ));
-        }
-    }
-    parse_mesh_only(root, file)
-}
-
-fn parse_mesh_only(root: Json, file: &Path) -> Result<Mesh, SceneError> {
     // The scene loader's memory check, as for a scene of this one mesh.
     let mut meshes = Cx {
         file,
         dir: Path::new(""),
     }
-    .meshes_within_memory(&[(String::new(), root)], "")?;
+    .meshes_within_memory(
+        &[(String::new(), root)],
+        "",
+        MESH_BYTES_PER_TRIANGLE.max(charge),
+    )?;
     Ok(meshes.remove(0))
 }
 
@@ -461,7 +439,7 @@ impl Cx<'_> {
             let (v, p) = top.req(self, "instances")?;
             self.instances(v, &p, &mesh_names, &material_names)?
         };
-        let meshes = self.meshes_within_memory(mesh_values, &mesh_path)?;
+        let meshes = self.meshes_within_memory(mesh_values, &mesh_path, MESH_BYTES_PER_TRIANGLE)?;
         self.check_world_extent(
             &camera,
             &meshes,
@@ -502,13 +480,21 @@ impl Cx<'_> {
     }
 
     /// Builds the meshes, refusing a scene whose meshes would not fit in
-    /// the memory available ([`MESH_BYTES_PER_TRIANGLE`]) with a message
-    /// instead of an allocation failure: first from the triangle counts
-    /// known without building (shapes and procedural objects), before any
-    /// mesh is made, then as each OBJ is read.
-    fn meshes_within_memory(&self, entries: &[(String, Json)], path: &str) -> Res<Vec<Mesh>> {
+    /// the memory available (`per_triangle` bytes a triangle: the scene
+    /// loader's [`MESH_BYTES_PER_TRIANGLE`], or a caller's total with what
+    /// it builds from a mesh) with a message instead of an allocation
+    /// failure: first from the triangle counts known without building
+    /// (shapes and procedural objects), before any mesh is made, then as
+    /// each OBJ is read.
+    fn meshes_within_memory(
+        &self,
+        entries: &[(String, Json)],
+        path: &str,
+        per_triangle: u64,
+    ) -> Res<Vec<Mesh>> {
         let available = nppp_files::available_memory();
         // A mesh given alone (`parse_mesh`) is named by its source.
+        let lone = path.is_empty();
         let keys: Vec<String> = entries
             .iter()
             .map(|(name, _)| match (path, name.as_str()) {
@@ -521,18 +507,26 @@ impl Cx<'_> {
             .zip(&keys)
             .map(|((_, v), key)| self.predicted_triangles(v, key).unwrap_or(0))
             .collect();
-        let too_much = |triangles: u64| {
-            available.filter(|&a| triangles.saturating_mul(MESH_BYTES_PER_TRIANGLE) > a)
-        };
+        let too_much =
+            |triangles: u64| available.filter(|&a| triangles.saturating_mul(per_triangle) > a);
         let message = |triangles: u64, available: u64, largest: &str| {
-            format!(
-                "the scene's meshes have {} triangles{largest}; loading them takes about {} \
-                 (about {MESH_BYTES_PER_TRIANGLE} bytes a triangle), more than the {} of memory \
-                 available: use fewer or coarser meshes (instances of one mesh share its triangles)",
-                count_text(triangles),
-                nppp_files::format_bytes(triangles.saturating_mul(MESH_BYTES_PER_TRIANGLE)),
-                nppp_files::format_bytes(available)
-            )
+            let need = nppp_files::format_bytes(triangles.saturating_mul(per_triangle));
+            let available = nppp_files::format_bytes(available);
+            if lone {
+                format!(
+                    "the mesh has {} triangles; it takes about {need} with what is built from \
+                     it, more than the {available} of memory available: use a coarser mesh",
+                    count_text(triangles)
+                )
+            } else {
+                format!(
+                    "the scene's meshes have {} triangles{largest}; loading them takes about \
+                     {need} (about {per_triangle} bytes a triangle), more than the {available} of \
+                     memory available: use fewer or coarser meshes (instances of one mesh share \
+                     its triangles)",
+                    count_text(triangles)
+                )
+            }
         };
         let mut remaining: u64 = predicted.iter().fold(0, |a, &b| a.saturating_add(b));
         if let Some(a) = too_much(remaining) {
