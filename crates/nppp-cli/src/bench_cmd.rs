@@ -32,7 +32,7 @@ pub struct BenchArgs {
     /// The spp ladder, comma-separated (overrides --quick's and the full default).
     #[arg(long, value_delimiter = ',', value_parser = crate::at_least_one::<u32>)]
     pub spp: Option<Vec<u32>>,
-    /// Samples per pixel of the reference.
+    /// Samples per pixel of the reference (even: rendered as two halves).
     #[arg(long, value_parser = crate::at_least_one::<u32>)]
     pub reference_spp: Option<u32>,
     /// Resolution factor applied to each scene's camera (quick: 0.5, full: 1).

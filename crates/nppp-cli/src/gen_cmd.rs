@@ -516,7 +516,9 @@ fn mesh_spec(s: &str, smooth: bool) -> Result<(String, String)> {
             v.is_object(),
             "--mesh: expected a JSON object such as {{\"icosphere\": {{...}}}}, got {s}"
         );
-        return Ok(("inline-mesh".to_string(), v.to_string()));
+        // The text as given, not `v` re-serialized: serde_json keeps the
+        // last of duplicated keys, which the scene loader refuses.
+        return Ok(("inline-mesh".to_string(), s.to_string()));
     }
     let path = Path::new(s);
     ensure!(
@@ -552,5 +554,6 @@ fn material_spec(s: &str) -> Result<(String, String)> {
         .unwrap_or("material")
         .to_string();
     ensure!(v.is_object(), "--material: expected a JSON object, got {s}");
-    Ok((ty, v.to_string()))
+    // The text as given (see `mesh_spec`).
+    Ok((ty, s.to_string()))
 }

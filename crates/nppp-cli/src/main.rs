@@ -241,10 +241,44 @@ fn print_summary(r: &impl std::fmt::Display) -> Result<()> {
     }
 }
 
+/// Signals that end a job besides Ctrl-C, SIGTERM and SIGHUP (which
+/// `ctrlc` handles): a batch system's soft CPU limit (SIGXCPU), a timer
+/// (SIGALRM, SIGVTALRM) or a user's SIGUSR1/2. Their default action ends
+/// the process at once, which left `nppp gen`'s temporary file; each is
+/// turned into a SIGTERM, so it ends a command as SIGTERM does.
+#[cfg(unix)]
+fn forward_stop_signals_as_term() {
+    extern "C" fn raise_term(_: libc::c_int) {
+        // SAFETY: raise(3) is async-signal-safe; the SIGTERM handler
+        // (`ctrlc`'s) only writes to its pipe.
+        unsafe {
+            libc::raise(libc::SIGTERM);
+        }
+    }
+    let handler = raise_term as extern "C" fn(libc::c_int) as libc::sighandler_t;
+    for sig in [
+        libc::SIGXCPU,
+        libc::SIGALRM,
+        libc::SIGVTALRM,
+        libc::SIGUSR1,
+        libc::SIGUSR2,
+    ] {
+        // SAFETY: installs a handler that does only the above; nothing
+        // else in the program handles these signals.
+        unsafe {
+            libc::signal(sig, handler);
+        }
+    }
+}
+
+#[cfg(not(unix))]
+fn forward_stop_signals_as_term() {}
+
 fn run(cli: Cli) -> Result<()> {
     if !matches!(cli.command, Command::Train { .. }) {
         clean_up_on_interrupt()?;
     }
+    forward_stop_signals_as_term();
     match cli.command {
         Command::Render { args, threads } => {
             threads.install()?;

@@ -160,8 +160,13 @@ fn merge_render(a: &MergeArgs) -> Result<()> {
         image_io::check_writable(p).context("--png")?;
     }
     let first = nppp_render::render_part::read_part_header(&a.parts[0])?;
-    crate::render_cmd::check_film_memory(first.width, first.height)
-        .with_context(|| format!("{}", a.parts[0].display()))?;
+    crate::render_cmd::check_pixels_memory(
+        first.width,
+        first.height,
+        nppp_render::render_part::MERGE_BYTES_PER_PIXEL,
+        "merging render parts",
+    )
+    .with_context(|| format!("{}", a.parts[0].display()))?;
     let merged = nppp_render::render_part::merge_parts(&a.parts)?;
     let img = merged.image();
     image_io::write_exr(&img, &a.out).context("writing the EXR")?;

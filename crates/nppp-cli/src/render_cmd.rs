@@ -47,7 +47,7 @@ pub struct RenderArgs {
         allow_negative_numbers = true,
         requires = "png"
     )]
-    pub exposure: f32,
+    pub exposure: f64,
     /// Tone curve of the PNG preview: clamp (values above 1 clip) or filmic
     /// (ACES fit: highlights roll off).
     #[arg(long, value_enum, default_value_t = TonemapChoice::Clamp, requires = "png")]
@@ -728,7 +728,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         stats.seconds += plan_seconds - p.confirmation_seconds();
     }
     let preview = image_io::Preview {
-        exposure_ev: a.exposure,
+        exposure_ev: a.exposure as f32,
         tonemap: match a.tonemap {
             TonemapChoice::Clamp => image_io::Tonemap::Clamp,
             TonemapChoice::Filmic => image_io::Tonemap::Filmic,
@@ -808,16 +808,29 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                     .unwrap_or_default()
             )
         })?;
+        // Five decimals; a huge error (a reference of another scene) in
+        // e-notation, not forty digits.
+        let m = |x: f64| {
+            if x.abs() >= 1e6 {
+                format!("{x:.4e}")
+            } else {
+                format!("{x:.5}")
+            }
+        };
         nppp_files::note!(
-            "error vs {}: relMSE {:.5}, relMSE (brightest 0.1% dropped) {:.5}, MAPE {:.4}, RMSE {:.5}; {:.2}s",
+            "error vs {}: relMSE {}, relMSE (brightest 0.1% dropped) {}, MAPE {}, RMSE {}; {:.2}s",
             a.reference
                 .as_ref()
                 .map(|p| p.display().to_string())
                 .unwrap_or_default(),
-            e.rel_mse,
-            e.rel_mse_trimmed,
-            e.mape,
-            e.rmse,
+            m(e.rel_mse),
+            m(e.rel_mse_trimmed),
+            if e.mape.abs() >= 1e6 {
+                format!("{:.4e}", e.mape)
+            } else {
+                format!("{:.4}", e.mape)
+            },
+            m(e.rmse),
             stats.seconds
         );
     }
@@ -847,17 +860,23 @@ fn parse_samples(s: &str) -> Result<std::ops::Range<u32>, String> {
 /// (the sums and their serialized columns): refused before rendering when
 /// that cannot fit, instead of failing at the end of the render.
 pub fn check_film_memory(width: u32, height: u32) -> Result<()> {
+    let per_pixel = 2 * nppp_render::render_part::PART_BYTES_PER_PIXEL + 12;
+    check_pixels_memory(width, height, per_pixel, "a render part")
+}
+
+/// Refuses `what` of `width` x `height` pixels at `per_pixel` bytes each
+/// when that is more than the memory available.
+pub fn check_pixels_memory(width: u32, height: u32, per_pixel: u64, what: &str) -> Result<()> {
     let need = u64::from(width)
-        * u64::from(height)
-        * (2 * nppp_render::render_part::PART_BYTES_PER_PIXEL + 12);
+        .saturating_mul(u64::from(height))
+        .saturating_mul(per_pixel);
     if let Some(avail) = nppp_files::available_memory()
         && need > avail
     {
         bail!(
-            "a render part of {width}x{height} needs about {} of memory for its film ({} bytes \
-             per pixel, twice), {} is available: render a smaller image or on a larger machine",
+            "{what} of {width}x{height} needs about {} of memory for its film ({per_pixel} bytes \
+             per pixel), {} is available: use a smaller image or a machine with more memory",
             nppp_files::format_bytes(need),
-            nppp_render::render_part::PART_BYTES_PER_PIXEL,
             nppp_files::format_bytes(avail)
         );
     }
@@ -873,14 +892,19 @@ fn part_settings(
     rs: &RenderScene,
     auto_choices: Option<String>,
 ) -> Result<std::collections::BTreeMap<String, String>> {
+    // Values as their flags spell them (a mismatch is reported with them).
+    fn flag<T: clap::ValueEnum>(v: &T) -> String {
+        v.to_possible_value()
+            .map_or_else(String::new, |p| p.get_name().to_string())
+    }
     let mut m = std::collections::BTreeMap::new();
-    m.insert("estimators".into(), format!("{:?}", a.estimators));
+    m.insert("estimators".into(), flag(&a.estimators));
     if let Some(e) = &rs.estimators {
         m.insert("P".into(), e.min_bounces.to_string());
-        m.insert("entry_nee".into(), format!("{:?}", a.entry_nee));
-        m.insert("latent_lookup".into(), format!("{:?}", a.latent_lookup));
-        m.insert("entry_mask".into(), format!("{:?}", a.entry_mask));
-        m.insert("decoder".into(), format!("{:?}", a.decoder));
+        m.insert("entry_nee".into(), flag(&a.entry_nee));
+        m.insert("latent_lookup".into(), flag(&a.latent_lookup));
+        m.insert("entry_mask".into(), flag(&a.entry_mask));
+        m.insert("decoder".into(), flag(&a.decoder));
     }
     if let Some(c) = auto_choices {
         m.insert("auto".into(), c);

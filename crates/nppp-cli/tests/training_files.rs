@@ -363,13 +363,14 @@ fn gen_and_merge_keep_existing_data_unless_told_to_overwrite() {
 
 /// Ctrl-C or SIGTERM during `nppp gen`: the half-written data's temporary
 /// file is removed (it was left behind, one per run, hidden) and no data
-/// file appears.
+/// file appears. So too for the signals a batch system or a user sends to
+/// end a job (a soft CPU limit's SIGXCPU, SIGUSR1: they killed it at once).
 #[test]
 fn an_interrupted_gen_leaves_no_temporary_file() {
     use std::process::Stdio;
     let dir = scratch("gen-interrupt");
     let out = dir.join("x.nppd");
-    for signal in ["INT", "TERM"] {
+    for signal in ["INT", "TERM", "XCPU", "USR1"] {
         let child = Command::new(env!("CARGO_BIN_EXE_nppp"))
             .args(["gen", "--mesh", "builtin", "--material", "white", "--quiet"])
             .args(["--rays", "100000000", "--out"])
@@ -603,7 +604,7 @@ fn damaged_checkpoints_are_refused_by_checksum() {
 #[test]
 fn a_forged_meta_json_is_refused_naming_the_file() {
     let dir = scratch("forged-meta");
-    let (_, model) = trained(&dir);
+    let (data, model) = trained(&dir);
     let mp = model.join("checkpoint/meta.json");
     let sp = model.join("checkpoint/state.json");
     let (meta, state) = (
@@ -622,25 +623,77 @@ fn a_forged_meta_json_is_refused_naming_the_file() {
             &|m: &mut serde_json::Value| m["dataset"]["k"] = 0.into(),
             "k = 0",
         ),
+        // The exit transform: bake refused it at the estimator's assembly,
+        // naming no file, and `train --resume` trained on.
+        (
+            "std 0",
+            &|m: &mut serde_json::Value| m["transform"]["std"][0] = 0.0.into(),
+            "transform.std[0] = 0",
+        ),
+        (
+            "version 0",
+            &|m: &mut serde_json::Value| m["version"] = 0.into(),
+            "model format version 0",
+        ),
     ] {
         let mut m: serde_json::Value = serde_json::from_str(&meta).unwrap();
         edit(&mut m);
-        let forged = serde_json::to_string_pretty(&m).unwrap();
-        std::fs::write(&mp, &forged).unwrap();
-        let mut st: serde_json::Value = serde_json::from_str(&state).unwrap();
-        for f in st["files"].as_array_mut().unwrap() {
-            if f["name"] == "meta.json" {
-                f["bytes"] = forged.len().into();
-                f["crc32"] = common::crc32(forged.as_bytes()).into();
-            }
-        }
-        std::fs::write(&sp, serde_json::to_string_pretty(&st).unwrap()).unwrap();
+        forge_checkpoint_file(&model, "meta.json", &m);
         let out = dir.join("e.nppp");
         let o = nppp(bake_args(&model, &out, &["--no-eval"]));
         assert_error(what, &o, &["checkpoint/meta.json", needle, "nppp train"]);
         assert!(!out.exists());
     }
+    std::fs::write(&mp, &meta).unwrap();
+    std::fs::write(&sp, &state).unwrap();
+    // A newer build's model: not the advice to retrain it over.
+    let mut m: serde_json::Value = serde_json::from_str(&meta).unwrap();
+    m["version"] = 2.into();
+    forge_checkpoint_file(&model, "meta.json", &m);
+    let out = dir.join("e.nppp");
+    let o = nppp(bake_args(&model, &out, &["--no-eval"]));
+    assert_error("version 2", &o, &["checkpoint/meta.json", "newer nppp"]);
+    assert!(!stderr(&o).contains("--overwrite`"), "{}", stderr(&o));
+    std::fs::write(&mp, &meta).unwrap();
+    std::fs::write(&sp, &state).unwrap();
+    // The checkpoint's training configuration, by its key, for bake and
+    // for a resumed run (they said "learning rate -1 must be positive").
+    let tp = model.join("checkpoint/train_config.json");
+    let config = std::fs::read_to_string(&tp).unwrap();
+    for (key, value, needle) in [
+        ("lr", serde_json::json!(-1.0), "lr (--lr) = -1"),
+        ("k", serde_json::json!(0), "k (--k) = 0"),
+        ("holdout_every", serde_json::json!(0), "holdout_every"),
+    ] {
+        let mut c: serde_json::Value = serde_json::from_str(&config).unwrap();
+        c[key] = value;
+        forge_checkpoint_file(&model, "train_config.json", &c);
+        let o = nppp(bake_args(&model, &out, &["--no-eval"]));
+        assert_error(key, &o, &["checkpoint/train_config.json", needle]);
+        let mut args = small_train(&data, &model, "2");
+        args.push("--resume".as_ref());
+        let o = nppp(&args);
+        assert_error(key, &o, &["checkpoint/train_config.json", needle]);
+        std::fs::write(&sp, &state).unwrap();
+    }
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Writes `value` as the checkpoint's file `name` and fixes its size and
+/// checksum up in `state.json` (a forgery that the checksums pass).
+fn forge_checkpoint_file(model: &Path, name: &str, value: &serde_json::Value) {
+    let forged = serde_json::to_string_pretty(value).unwrap();
+    std::fs::write(model.join("checkpoint").join(name), &forged).unwrap();
+    let sp = model.join("checkpoint/state.json");
+    let mut st: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&sp).unwrap()).unwrap();
+    for f in st["files"].as_array_mut().unwrap() {
+        if f["name"] == name {
+            f["bytes"] = forged.len().into();
+            f["crc32"] = common::crc32(forged.as_bytes()).into();
+        }
+    }
+    std::fs::write(&sp, serde_json::to_string_pretty(&st).unwrap()).unwrap();
 }
 
 /// A fresh run that diverges before its first checkpoint left the folder it

@@ -290,9 +290,8 @@ impl BakedEstimator {
         if self.decoder.outputs() != EXIT_FEATURES {
             return Err(format!("decoder gives {} outputs, an exit has {EXIT_FEATURES} features", self.decoder.outputs()));
         }
-        let t = &self.transform;
-        if !t.mean.iter().all(|x| x.is_finite()) || !t.std.iter().all(|s| s.is_finite() && *s > 0.0) {
-            return Err("output transform has a non-finite mean or a std that is not finite and > 0".into());
+        if let Some(what) = crate::exit::transform_problem(&self.transform.mean, &self.transform.std) {
+            return Err(format!("output transform: {what}"));
         }
         if let Some(v) = &self.vertex {
             v.decoder.validate().map_err(|e| format!("vertex decoder: {e}"))?;
@@ -302,9 +301,8 @@ impl BakedEstimator {
             if v.decoder.outputs() != VERTEX_FEATURES {
                 return Err(format!("vertex decoder gives {} outputs, a vertex has {VERTEX_FEATURES} features", v.decoder.outputs()));
             }
-            let t = &v.transform;
-            if !t.mean.iter().all(|x| x.is_finite()) || !t.std.iter().all(|s| s.is_finite() && *s > 0.0) {
-                return Err("vertex transform has a non-finite mean or a std that is not finite and > 0".into());
+            if let Some(what) = crate::exit::transform_problem(&v.transform.mean, &v.transform.std) {
+                return Err(format!("vertex transform: {what}"));
             }
         }
         Ok(())

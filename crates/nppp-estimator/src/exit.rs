@@ -37,6 +37,17 @@ pub struct ExitTransform {
     pub std: [f32; EXIT_FEATURES],
 }
 
+/// The first entry of a per-feature standardization (`mean`, `std`) that
+/// cannot be used, named by index (`"std[0] = 0"`), or `None`: every mean
+/// finite, every std finite and > 0. Shared by the exit and vertex
+/// transforms of estimator files and model folders.
+pub fn transform_problem(mean: &[f32], std: &[f32]) -> Option<String> {
+    if let Some((i, m)) = mean.iter().enumerate().find(|(_, m)| !m.is_finite()) {
+        return Some(format!("mean[{i}] = {m} is not a finite number"));
+    }
+    std.iter().enumerate().find(|(_, s)| !(s.is_finite() && **s > 0.0)).map(|(i, s)| format!("std[{i}] = {s} must be a finite number > 0"))
+}
+
 impl Default for ExitTransform {
     fn default() -> Self {
         Self { mean: [0.0; EXIT_FEATURES], std: [1.0; EXIT_FEATURES] }
@@ -174,7 +185,9 @@ impl ExitTransform {
             repairs.degenerate += 1;
         }
         let mut clamped = false;
-        let mut unlog = |y: f32| -> f32 {
+        // `rounding`: how far below 0 a value may decode and still count as
+        // the decoder's rounding of a 0 (zeroed, not reported as a repair).
+        let mut unlog = |y: f32, rounding: f32| -> f32 {
             if !y.is_finite() {
                 clamped = true;
                 return 0.0;
@@ -182,7 +195,7 @@ impl ExitTransform {
             // exp(88) overflows f32; anything that large is a broken network.
             let v = y.min(80.0).exp() - 1.0;
             if v < 0.0 {
-                if v < -1e-6 {
+                if v < -rounding {
                     clamped = true;
                 }
                 0.0
@@ -190,9 +203,15 @@ impl ExitTransform {
                 v
             }
         };
-        let throughput = Vec3::new(unlog(raw[6]), unlog(raw[7]), unlog(raw[8]));
-        let radiance = Vec3::new(unlog(raw[9]), unlog(raw[10]), unlog(raw[11]));
-        let b = unlog(raw[12]).round();
+        let throughput = Vec3::new(unlog(raw[6], 1e-6), unlog(raw[7], 1e-6), unlog(raw[8], 1e-6));
+        // Radiance as on its positive side: a non-emitter's decoder rounds
+        // its zeros to a few 1e-6 either way (the committed tube's: 76% of
+        // its exits were reported as repairs, and the render warned that
+        // the estimator was undertrained).
+        let r = EXIT_RADIANCE_TOLERANCE;
+        let radiance = Vec3::new(unlog(raw[9], r), unlog(raw[10], r), unlog(raw[11], r));
+        // A count: whatever rounds to 0 is 0.
+        let b = unlog(raw[12], 0.5).round();
         // More than the material can return is a broken or forged network,
         // and would brighten the image without bound.
         if throughput.max_element() > 1.01 * bounds.throughput {
@@ -353,8 +372,16 @@ mod tests {
         let e = tr.decode(&f, 8, ExitBounds::new(false, 17.0), &mut rep);
         assert!((e.radiance - Vec3::new(2.0, 0.0, 1e-6)).abs().max_element() < 1e-5);
         assert_eq!(rep, DecodeRepairs::default());
-        // A trained non-emitter's decoder returns rounding, not a repair.
+        // A trained non-emitter's decoder returns rounding, not a repair,
+        // on either side of 0.
         let e = tr.decode(&f.map(|x| x.min(1e-5)), 8, ExitBounds::SURFACE, &mut rep);
         assert_eq!((e.radiance, rep.clamped), (Vec3::ZERO, 0));
+        f[9..12].copy_from_slice(&[(-4e-6f32).ln_1p(), (-1e-4f32).ln_1p(), 0.0]);
+        let e = tr.decode(&f, 8, ExitBounds::SURFACE, &mut rep);
+        assert_eq!((e.radiance, rep.clamped), (Vec3::ZERO, 0));
+        // Well below 0 is a broken decoder.
+        f[9] = (-0.5f32).ln_1p();
+        let e = tr.decode(&f, 8, ExitBounds::SURFACE, &mut rep);
+        assert_eq!((e.radiance, rep.clamped), (Vec3::ZERO, 1));
     }
 }

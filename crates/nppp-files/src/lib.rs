@@ -178,7 +178,18 @@ pub fn remove_pending_temp_files() -> Vec<PathBuf> {
     let mut dirs = pending_dirs();
     // Latest first: a folder inside another goes before it.
     for dir in dirs.drain(..).rev() {
-        let _ = std::fs::remove_dir_all(dir);
+        // The thread writing into it runs on: a file it creates while
+        // remove_dir_all runs leaves the folder not empty (1 second Ctrl-C
+        // in 20 left a resumed run's `checkpoint.tmp/`), so try again until
+        // it is gone; once it is, that thread's next file cannot be made.
+        for _ in 0..200 {
+            match std::fs::remove_dir_all(&dir) {
+                Err(e) if e.kind() != io::ErrorKind::NotFound => {
+                    std::thread::sleep(std::time::Duration::from_millis(1));
+                }
+                _ => break,
+            }
+        }
     }
     // Held until the process exits: no rename completes after this.
     std::mem::forget(list);

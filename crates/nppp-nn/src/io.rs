@@ -55,11 +55,13 @@ pub struct ModelMeta {
 
 impl ModelMeta {
     pub const FORMAT: &'static str = "nppp-model";
+    /// The meta.json version this build writes and reads.
+    pub const VERSION: u32 = 1;
 
     pub fn new(dataset: DatasetInfo, transform: ExitTransform, data_path: PathBuf) -> Self {
         Self {
             format: Self::FORMAT.into(),
-            version: 1,
+            version: Self::VERSION,
             dataset,
             data_path: std::path::absolute(&data_path).unwrap_or(data_path),
             transform,

@@ -225,6 +225,15 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
     }
     let v: Version = serde_json::from_str(&text)
         .with_context(|| format!("{} is corrupt (not a checkpoint state)", sp.display()))?;
+    if v.version > STATE_VERSION {
+        bail!(
+            "{}: checkpoint format version {}, newer than this build reads ({STATE_VERSION}): \
+             it was written by a newer nppp; use that build (retraining with --overwrite would \
+             replace it)",
+            sp.display(),
+            v.version
+        );
+    }
     if v.version != STATE_VERSION {
         bail!(
             "{}: checkpoint format version {} (this build reads version {STATE_VERSION}: \
@@ -265,8 +274,7 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
     let train_config = TrainConfig::load(&tc)
         .map_err(|e| anyhow::anyhow!("cannot read {}: {e:?}", tc.display()))?;
     train_config
-        .model
-        .validate()
+        .check_values()
         .with_context(|| format!("{}", tc.display()))?;
     let mp = dir.join(files::META);
     let meta: ModelMeta = serde_json::from_str(
@@ -274,16 +282,52 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
             .with_context(|| format!("reading {}", mp.display()))?,
     )
     .with_context(|| format!("{} is corrupt", mp.display()))?;
-    if meta.format != ModelMeta::FORMAT || meta.version != 1 {
+    if meta.format != ModelMeta::FORMAT {
         bail!(
-            "{}: not an nppp model (format {:?} version {})",
+            "{}: not an nppp model's meta.json (format {:?}, not {:?})",
             mp.display(),
             meta.format,
-            meta.version
+            ModelMeta::FORMAT
+        );
+    }
+    if meta.version > ModelMeta::VERSION {
+        bail!(
+            "{}: model format version {}, newer than this build reads ({}): it was written by \
+             a newer nppp; use that build (retraining with --overwrite would replace it)",
+            mp.display(),
+            meta.version,
+            ModelMeta::VERSION
+        );
+    }
+    if meta.version != ModelMeta::VERSION {
+        bail!(
+            "{}: model format version {} (this build reads version {}); {rebuild}",
+            mp.display(),
+            meta.version,
+            ModelMeta::VERSION
         );
     }
     if let Err(what) = meta.dataset.check() {
         bail!("{}: dataset: {what}; {rebuild}", mp.display());
+    }
+    let transforms = [
+        (
+            "transform",
+            Some((&meta.transform.mean[..], &meta.transform.std[..])),
+        ),
+        (
+            "vertex_transform",
+            meta.vertex_transform
+                .as_ref()
+                .map(|v| (&v.mean[..], &v.std[..])),
+        ),
+    ];
+    for (key, t) in transforms {
+        if let Some((mean, std)) = t
+            && let Some(what) = nppp_estimator::exit::transform_problem(mean, std)
+        {
+            bail!("{}: {key}.{what}; {rebuild}", mp.display());
+        }
     }
     if meta.input_features != INPUT_FEATURES {
         bail!(

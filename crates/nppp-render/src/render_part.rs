@@ -32,6 +32,12 @@ const END_MAGIC: [u8; 4] = *b"PEND";
 const MAX_HEADER_LEN: u32 = 1 << 20;
 /// Raw bytes per pixel: 3 channels x 4 limbs x 8, valid and dropped counts.
 pub const PART_BYTES_PER_PIXEL: u64 = 3 * 4 * 8 + 4 + 4;
+/// What merging parts holds at its peak, per pixel: the merged film, and
+/// of the part being read its raw columns with either its compressed bytes
+/// (at most 1/8 over raw) or its decoded film; then the image and its EXR
+/// rows (f32 RGB, twice). Measured: 320 bytes a pixel at 4096 x 4096 with
+/// two parts; the 220 once counted let a merge pass the check and abort.
+pub const MERGE_BYTES_PER_PIXEL: u64 = 3 * PART_BYTES_PER_PIXEL + PART_BYTES_PER_PIXEL / 8 + 2 * 12;
 
 /// What a part belongs to and which samples it holds.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -294,6 +300,9 @@ pub fn read_part(path: &Path) -> Result<(RenderPartHeader, Vec<PixelSum>), Rende
             "film inflates to the wrong size: the file is damaged",
         ));
     }
+    // The compressed bytes are done with: not held beside the film built
+    // next (MERGE_BYTES_PER_PIXEL counts one or the other).
+    drop(stored);
     let n = n as usize;
     let mut film = vec![PixelSum::default(); n];
     for c in 0..3 {
@@ -364,15 +373,17 @@ impl MergedRender {
 fn mismatch(a: &RenderPartHeader, b: &RenderPartHeader) -> Option<String> {
     let fields: [(&str, String, String); 6] = [
         ("renderer", a.renderer.clone(), b.renderer.clone()),
-        (
-            "scene content (hash)",
-            a.scene_hash.clone(),
-            b.scene_hash.clone(),
-        ),
+        // Before the scene's hash, which covers the image size too: parts
+        // of another --width are told so.
         (
             "image size",
             format!("{}x{}", a.width, a.height),
             format!("{}x{}", b.width, b.height),
+        ),
+        (
+            "scene content (hash)",
+            a.scene_hash.clone(),
+            b.scene_hash.clone(),
         ),
         ("spp", a.spp.to_string(), b.spp.to_string()),
         ("seed", a.seed.to_string(), b.seed.to_string()),
@@ -389,6 +400,10 @@ fn mismatch(a: &RenderPartHeader, b: &RenderPartHeader) -> Option<String> {
     }
     let keys: std::collections::BTreeSet<&String> =
         a.settings.keys().chain(b.settings.keys()).collect();
+    // `estimators` first: the other settings follow from it (`auto`'s
+    // decision exists only in an auto render).
+    let mut keys: Vec<&String> = keys.into_iter().collect();
+    keys.sort_by_key(|k| k.as_str() != "estimators");
     for k in keys {
         let (x, y) = (a.settings.get(k), b.settings.get(k));
         if x != y {

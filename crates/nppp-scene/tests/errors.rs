@@ -1249,6 +1249,36 @@ fn camera_up_parallel_to_forward() {
         "camera.up",
         "no direction",
     );
+    // Parallel whatever its length.
+    expect_error(
+        |v| {
+            v["camera"]["up"] = json!([0, 0, 3e30]);
+        },
+        "camera.up",
+        "parallel",
+    );
+}
+
+/// `up` is a direction: one of any length f32 holds is that direction
+/// (a squared length past f32's range was refused as "no direction").
+#[test]
+fn camera_up_of_any_length_is_its_direction() {
+    for up in [
+        json!([0, 2e19, 0]),
+        json!([1e30, 1e30, 0]),
+        json!([0, 1e-30, 0]),
+    ] {
+        let mut v = base();
+        v["camera"]["up"] = up.clone();
+        let scene = parse(&v).unwrap_or_else(|e| panic!("up {up}: {e}"));
+        let c = &scene.camera;
+        let forward = (c.look_at - c.position).normalize();
+        let right = forward.cross(c.up).normalize();
+        assert!(
+            right.is_finite() && right.is_normalized(),
+            "up {up}: right {right}"
+        );
+    }
 }
 
 #[test]

@@ -13,11 +13,14 @@ use nppp_render::RenderScene;
 /// so that a translucent scene at M = 256 costs 23 PT configurations, not 256.
 pub(super) fn pt_bounce_ladder(m: u32) -> Vec<u32> {
     let mut ladder: Vec<u32> = (1..=m.min(16)).collect();
-    let mut step = 16u32;
-    while step < m {
+    // u64: for M near u32::MAX, `step * 2` would wrap to 0 in u32 and the
+    // loop would never end (it filled memory).
+    let m64 = u64::from(m);
+    let mut step = 16u64;
+    while step < m64 {
         for x in [step + step / 2, step * 2] {
-            if x < m {
-                ladder.push(x);
+            if x < m64 {
+                ladder.push(x as u32);
             }
         }
         step *= 2;
@@ -37,6 +40,14 @@ mod ladder_tests {
         assert_eq!(&l[15..], &[16, 24, 32, 48, 64, 96, 128, 192, 256]);
         let l = super::pt_bounce_ladder(100);
         assert_eq!(&l[15..], &[16, 24, 32, 48, 64, 96, 100]);
+        // Up to u32::MAX: two per octave, ending at M (the doubling once
+        // wrapped to 0 and never ended).
+        for m in [1u32 << 31, (1 << 31) + 1, u32::MAX] {
+            let l = super::pt_bounce_ladder(m);
+            assert_eq!(*l.last().unwrap(), m);
+            assert!(l.len() < 80, "{} rungs for M = {m}", l.len());
+            assert!(l.windows(2).all(|w| w[0] < w[1]));
+        }
     }
 }
 
@@ -87,8 +98,10 @@ impl Plan {
             scale: a.scale.unwrap_or(scale),
         };
         ensure!(
-            plan.reference_spp >= 2,
-            "--reference-spp must be at least 2 (it is rendered as two halves)"
+            plan.reference_spp >= 2 && plan.reference_spp.is_multiple_of(2),
+            "--reference-spp {}: give an even count of at least 2 (the reference is rendered as \
+             two halves of equal spp)",
+            plan.reference_spp
         );
         ensure!(
             plan.scale.is_finite() && plan.scale > 0.0 && plan.scale <= 4.0,

@@ -207,36 +207,55 @@ impl TrainConfig {
     }
 
     fn validate(&self) -> Result<()> {
+        self.check_values()?;
+        self.check_step_memory()
+    }
+
+    /// Refuses values no run can use, naming the key (as in
+    /// `train_config.json`; the flag beside it where there is one): a
+    /// checkpoint's file is checked with this when it is opened.
+    pub fn check_values(&self) -> Result<()> {
         self.model.validate()?;
         let pos = [
-            ("batch", self.batch),
-            ("k", self.k),
-            ("mask_batch", self.mask_batch),
+            ("batch (--batch)", self.batch),
+            ("k (--k)", self.k),
+            ("mask_batch (--mask-batch)", self.mask_batch),
         ];
         for (name, v) in pos {
             if v == 0 {
-                bail!("{name} must be at least 1");
+                bail!("{name} = 0 must be at least 1");
             }
         }
         if !(self.lr.is_finite() && self.lr > 0.0) {
-            bail!("learning rate {} must be positive", self.lr);
+            bail!("lr (--lr) = {} must be a number > 0", self.lr);
         }
-        if !((0.0..=1.0).contains(&self.lr_decay_from) && (0.0..=1.0).contains(&self.lr_final)) {
-            bail!("lr_decay_from and lr_final must be in [0, 1]");
+        for (name, v) in [
+            ("lr_decay_from", self.lr_decay_from),
+            ("lr_final", self.lr_final),
+        ] {
+            if !(0.0..=1.0).contains(&v) {
+                bail!("{name} = {v} must be in [0, 1]");
+            }
         }
         if !(self.energy_weight.is_finite() && self.energy_weight >= 0.0) {
             bail!(
-                "--energy-weight {}: must be a number >= 0",
+                "energy_weight (--energy-weight) = {} must be a number >= 0",
                 self.energy_weight
             );
         }
         if !(self.vertex_weight.is_finite() && self.vertex_weight >= 0.0) {
-            bail!("vertex weight {} must be a number >= 0", self.vertex_weight);
+            bail!(
+                "vertex_weight = {} must be a number >= 0",
+                self.vertex_weight
+            );
         }
         if self.holdout_every < 2 {
-            bail!("holdout_every must be at least 2");
+            bail!(
+                "holdout_every (--holdout-every) = {} must be at least 2",
+                self.holdout_every
+            );
         }
-        self.check_step_memory()
+        Ok(())
     }
 
     /// Bytes one step holds for the exit terms (pairwise distances of the

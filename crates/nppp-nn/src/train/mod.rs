@@ -132,7 +132,15 @@ fn train_on(
     };
     // The schedule's length, and where this invocation stops.
     let total_steps = if cfg.epochs > 0 {
-        (cfg.epochs * spe) as u64
+        (cfg.epochs as u64)
+            .checked_mul(spe as u64)
+            .with_context(|| {
+                format!(
+                    "--epochs {} of {spe} steps each is more steps than can be counted; give \
+                     fewer epochs or --steps",
+                    cfg.epochs
+                )
+            })?
     } else {
         cfg.steps
     };

@@ -716,15 +716,25 @@ impl Cx<'_> {
             };
             return Err(self.invalid(&lp, message));
         };
+        // Only the direction of `up` matters. One whose squared length f32
+        // cannot hold (components beyond about 1.8e19 or below 1e-19) is
+        // scaled to a largest component of 1, the same direction, which the
+        // renderer's products then hold; any other is kept as written (the
+        // images of such scenes do not change by a bit).
+        let given_up = up;
+        let up = match up.abs().max_element() {
+            m if m > 0.0 && !(up.length_squared().is_normal()) => up / m,
+            _ => up,
+        };
         let Some(up_unit) = up.try_normalize() else {
-            return Err(self.invalid(&up_path, format!("{up} has no direction")));
+            return Err(self.invalid(&up_path, format!("{given_up} has no direction")));
         };
         let parallel =
             forward.cross(up_unit).length() < 1e-6 || forward.cross(up).try_normalize().is_none();
         if parallel {
             return Err(self.invalid(
                 &up_path,
-                format!("{up} is parallel to the viewing direction {forward}, so the image has no defined right or up"),
+                format!("{given_up} is parallel to the viewing direction {forward}, so the image has no defined right or up"),
             ));
         }
         Ok(Camera {
