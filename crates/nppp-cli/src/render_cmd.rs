@@ -808,13 +808,13 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                     .unwrap_or_default()
             )
         })?;
-        // Five decimals; a huge error (a reference of another scene) in
+        // Fixed decimals; a huge error (a reference of another scene) in
         // e-notation, not forty digits.
-        let m = |x: f64| {
+        let m = |x: f64, decimals: usize| {
             if x.abs() >= 1e6 {
                 format!("{x:.4e}")
             } else {
-                format!("{x:.5}")
+                format!("{x:.decimals$}")
             }
         };
         nppp_files::note!(
@@ -823,14 +823,10 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                 .as_ref()
                 .map(|p| p.display().to_string())
                 .unwrap_or_default(),
-            m(e.rel_mse),
-            m(e.rel_mse_trimmed),
-            if e.mape.abs() >= 1e6 {
-                format!("{:.4e}", e.mape)
-            } else {
-                format!("{:.4}", e.mape)
-            },
-            m(e.rmse),
+            m(e.rel_mse, 5),
+            m(e.rel_mse_trimmed, 5),
+            m(e.mape, 4),
+            m(e.rmse, 5),
             stats.seconds
         );
     }
