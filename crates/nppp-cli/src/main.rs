@@ -244,13 +244,20 @@ fn print_summary(r: &impl std::fmt::Display) -> Result<()> {
 /// Signals that end a job besides Ctrl-C, SIGTERM and SIGHUP (which
 /// `ctrlc` handles): a batch system's soft CPU limit (SIGXCPU), a timer
 /// (SIGALRM, SIGVTALRM) or a user's SIGUSR1/2. Their default action ends
-/// the process at once, which left `nppp gen`'s temporary file; each is
-/// turned into a SIGTERM, so it ends a command as SIGTERM does.
+/// the process at once, which left `nppp gen`'s temporary file; the first
+/// of them is turned into a SIGTERM, so it ends a command as SIGTERM does,
+/// and the rest are ignored: SIGXCPU comes again every CPU-second past the
+/// soft limit, and a second SIGTERM would cut short the checkpoint a
+/// training run saves at the first (Ctrl-C and SIGTERM still quit at once).
 #[cfg(unix)]
 fn forward_stop_signals_as_term() {
+    static FORWARDED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
     extern "C" fn raise_term(_: libc::c_int) {
-        // SAFETY: raise(3) is async-signal-safe; the SIGTERM handler
-        // (`ctrlc`'s) only writes to its pipe.
+        if FORWARDED.swap(true, std::sync::atomic::Ordering::SeqCst) {
+            return;
+        }
+        // SAFETY: raise(3) is async-signal-safe, as is a lock-free atomic;
+        // `ctrlc`'s SIGTERM handler only posts its semaphore.
         unsafe {
             libc::raise(libc::SIGTERM);
         }

@@ -65,9 +65,10 @@ pub const EXIT_THROUGHPUT_BOUND: f32 = 1.0;
 /// 28% of cornell-jade's network exits, and the knot, darker.
 pub const EXIT_THROUGHPUT_BOUND_MEDIUM: f32 = 3.0;
 
-/// Decoded exit radiance beyond its bound that still counts as rounding,
-/// not as a broken decoder (the radiance features' standard deviation is
-/// floored at 1e-3, so a decoder trained on zeros stays far below this).
+/// Decoded exit radiance beyond its bound, or below 0, that still counts
+/// as rounding, not as a broken decoder (the radiance features' standard
+/// deviation is floored at 1e-3, so a decoder trained on zeros stays far
+/// within this).
 pub const EXIT_RADIANCE_TOLERANCE: f32 = 1e-3;
 
 /// The throughput bound of an object with or without a medium inside.
@@ -155,7 +156,9 @@ impl ExitTransform {
     /// Inverts `encode`; repairs what a network may get wrong (unnormalized
     /// vectors, inward directions, negative or non-finite values, a
     /// throughput or radiance above `bounds`) and counts it, each kind once
-    /// per exit.
+    /// per exit. Values just below 0 are zeroed without a count, as
+    /// rounding: throughput down to -1e-6, radiance down to
+    /// -`EXIT_RADIANCE_TOLERANCE`, the bounce count down to -0.5.
     pub fn decode(&self, f: &[f32; EXIT_FEATURES], max_bounces: u32, bounds: ExitBounds, repairs: &mut DecodeRepairs) -> Exit {
         let mut raw = [0.0f32; EXIT_FEATURES];
         for i in 0..EXIT_FEATURES {

@@ -8,9 +8,9 @@
 //!   new one, never a half-written one; a writer dropped before
 //!   [`AtomicFile::commit`] removes its temporary file, and a command ended
 //!   by a signal removes every one still open ([`remove_pending_temp_files`]),
-//!   with every folder still being assembled ([`track_pending_dir`],
-//!   [`rename_dir_into_place`]: a checkpoint's `checkpoint.tmp/`, a fresh
-//!   model folder before its first checkpoint).
+//!   with every folder still being assembled ([`create_tracked_dir`],
+//!   [`track_pending_dir`], [`rename_dir_into_place`]: a checkpoint's
+//!   `checkpoint.tmp/`, a fresh model folder before its first checkpoint).
 //! - [`ensure_not_input`]: an output path that names one of the command's
 //!   inputs (the same file, under any spelling or hard link) is refused
 //!   before any work, so a slip of the flags cannot overwrite the training
@@ -142,11 +142,23 @@ fn pending_dirs() -> MutexGuard<'static, Vec<PathBuf>> {
     PENDING_DIRS.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// Tracks folder `dir` (created by this process, or about to be) as not yet
-/// in place. Track it before creating it: a signal between the two then
-/// finds it tracked.
+/// Tracks folder `dir`, which this process created, as not yet in place
+/// (a folder still to be made: [`create_tracked_dir`]).
 pub fn track_pending_dir(dir: &Path) {
     pending_dirs().push(dir.to_path_buf());
+}
+
+/// Creates folder `dir` (with its parents) and tracks it as not yet in
+/// place, as one step against a signal handler's
+/// [`remove_pending_temp_files`], which holds the same lock to the end: a
+/// signal finds the folder either tracked or not made, and one that comes
+/// first leaves it unmade. Tracked first and created after, a signal in
+/// between found nothing to remove and the folder was made after it.
+pub fn create_tracked_dir(dir: &Path) -> io::Result<()> {
+    let mut list = pending_dirs();
+    std::fs::create_dir_all(dir)?;
+    list.push(dir.to_path_buf());
+    Ok(())
 }
 
 /// Stops tracking `dir` (it is in place, or was removed).
@@ -181,7 +193,8 @@ pub fn remove_pending_temp_files() -> Vec<PathBuf> {
         // The thread writing into it runs on: a file it creates while
         // remove_dir_all runs leaves the folder not empty (1 second Ctrl-C
         // in 20 left a resumed run's `checkpoint.tmp/`), so try again until
-        // it is gone; once it is, that thread's next file cannot be made.
+        // it is gone; once it is, that thread's next file cannot be made
+        // (nor the folder again: `create_tracked_dir` waits on this lock).
         for _ in 0..200 {
             match std::fs::remove_dir_all(&dir) {
                 Err(e) if e.kind() != io::ErrorKind::NotFound => {

@@ -598,8 +598,7 @@ fn write_checkpoint_tmp(
     if tmp.exists() {
         fs::remove_dir_all(tmp).with_context(|| format!("removing {}", tmp.display()))?;
     }
-    nppp_files::track_pending_dir(tmp);
-    fs::create_dir_all(tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    nppp_files::create_tracked_dir(tmp).with_context(|| format!("creating {}", tmp.display()))?;
     let w = tmp.join(files::WEIGHTS);
     c.model
         .clone()

@@ -430,7 +430,12 @@ fn shade(
                     let dist = (p - path.prev_point).length();
                     power_heuristic(path.prev_pdf, scene.lights.pdf_solid_angle(li, dist, cos_l))
                 };
-                path.radiance += path.beta * radiance * w;
+                // A hit of weight 0 adds nothing, also where beta x radiance
+                // overflows (a lamp near f32's limit: inf x 0 made the
+                // sample NaN, and the film dropped it whole).
+                if w > 0.0 {
+                    path.radiance += path.beta * radiance * w;
+                }
             }
             return Next::Terminate;
         }

@@ -1263,22 +1263,38 @@ fn camera_up_parallel_to_forward() {
 /// (a squared length past f32's range was refused as "no direction").
 #[test]
 fn camera_up_of_any_length_is_its_direction() {
-    for up in [
-        json!([0, 2e19, 0]),
-        json!([1e30, 1e30, 0]),
-        json!([0, 1e-30, 0]),
+    // Looking along z, and nearly straight up (1e-3 and 1e-4 off the y
+    // axis: a short `up` made a subnormal cross product there, refused as
+    // parallel or normalized 5.6% short).
+    let straight_on = (json!([278, 273, -800]), json!([278, 273, 0]));
+    let nearly_up = |tilt: f64| (json!([0, 0, 0]), json!([tilt, 1.0, 0]));
+    for (camera, up) in [
+        (straight_on.clone(), json!([0, 2e19, 0])),
+        (straight_on.clone(), json!([1e30, 1e30, 0])),
+        (straight_on.clone(), json!([0, 1e-30, 0])),
+        (nearly_up(1e-4), json!([0, 2e-19, 0])),
+        (nearly_up(1e-3), json!([0, 1e-18, 0])),
+        (nearly_up(1e-4), json!([0, 5e-18, 0])),
     ] {
         let mut v = base();
+        v["camera"]["position"] = camera.0;
+        v["camera"]["look_at"] = camera.1;
         v["camera"]["up"] = up.clone();
         let scene = parse(&v).unwrap_or_else(|e| panic!("up {up}: {e}"));
         let c = &scene.camera;
         let forward = (c.look_at - c.position).normalize();
         let right = forward.cross(c.up).normalize();
         assert!(
-            right.is_finite() && right.is_normalized(),
+            right.is_finite() && (right.length() - 1.0).abs() < 1e-6,
             "up {up}: right {right}"
         );
     }
+    // Exact: an `up` of another length is the same up, bit for bit.
+    let mut v = base();
+    v["camera"]["up"] = json!([0.1, 1.0, 0]);
+    let one = parse(&v).unwrap().camera.up;
+    v["camera"]["up"] = json!([0.4, 4.0, 0]);
+    assert_eq!(parse(&v).unwrap().camera.up, one);
 }
 
 #[test]

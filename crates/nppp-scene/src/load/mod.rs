@@ -716,14 +716,17 @@ impl Cx<'_> {
             };
             return Err(self.invalid(&lp, message));
         };
-        // Only the direction of `up` matters. One whose squared length f32
-        // cannot hold (components beyond about 1.8e19 or below 1e-19) is
-        // scaled to a largest component of 1, the same direction, which the
-        // renderer's products then hold; any other is kept as written (the
-        // images of such scenes do not change by a bit).
+        // Only the direction of `up` matters: scaled by a power of two to a
+        // largest component in [1, 2), the renderer's products (a cross
+        // product, its squared length) are in range at any length f32
+        // holds. Exact: the image is the same bit for bit as with `up` as
+        // written wherever that worked (1e-19 or 2e19 long did not).
         let given_up = up;
         let up = match up.abs().max_element() {
-            m if m > 0.0 && !(up.length_squared().is_normal()) => up / m,
+            m if m > 0.0 && m.is_finite() => {
+                let scale = (-f64::from(m).log2().floor()).exp2();
+                (up.as_dvec3() * scale).as_vec3()
+            }
             _ => up,
         };
         let Some(up_unit) = up.try_normalize() else {
