@@ -195,6 +195,20 @@ fn parse_json(json: &str, file: &Path) -> Result<Json, SceneError> {
 
 type Res<T> = Result<T, SceneError>;
 
+/// A vector as a message shows it: a component that is huge or tiny in
+/// e-notation (glam's `Display` printed 2e19 as twenty digits), any other
+/// as written.
+fn vec_text(v: Vec3) -> String {
+    let c = |x: f32| {
+        if x != 0.0 && x.is_finite() && !(1e-3..1e6).contains(&x.abs()) {
+            format!("{x:e}")
+        } else {
+            format!("{x}")
+        }
+    };
+    format!("[{}, {}, {}]", c(v.x), c(v.y), c(v.z))
+}
+
 /// The file being loaded, for messages and relative paths.
 struct Cx<'a> {
     file: &'a Path,
@@ -710,9 +724,15 @@ impl Cx<'_> {
         let delta = look_at - position;
         let Some(forward) = delta.try_normalize() else {
             let message = if delta == Vec3::ZERO {
-                format!("equals camera.position {position}, so there is no viewing direction")
+                format!(
+                    "equals camera.position {}, so there is no viewing direction",
+                    vec_text(position)
+                )
             } else {
-                format!("look_at - position = {delta} cannot be normalized in 32-bit floats")
+                format!(
+                    "look_at - position = {} cannot be normalized in 32-bit floats",
+                    vec_text(delta)
+                )
             };
             return Err(self.invalid(&lp, message));
         };
@@ -730,14 +750,18 @@ impl Cx<'_> {
             _ => up,
         };
         let Some(up_unit) = up.try_normalize() else {
-            return Err(self.invalid(&up_path, format!("{given_up} has no direction")));
+            return Err(self.invalid(&up_path, format!("{} has no direction", vec_text(given_up))));
         };
         let parallel =
             forward.cross(up_unit).length() < 1e-6 || forward.cross(up).try_normalize().is_none();
         if parallel {
             return Err(self.invalid(
                 &up_path,
-                format!("{given_up} is parallel to the viewing direction {forward}, so the image has no defined right or up"),
+                format!(
+                    "{} is parallel to the viewing direction {}, so the image has no defined right or up",
+                    vec_text(given_up),
+                    vec_text(forward)
+                ),
             ));
         }
         Ok(Camera {
