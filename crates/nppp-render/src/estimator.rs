@@ -17,7 +17,7 @@ use crate::accel::{Accel, InstanceXform, SceneHit};
 use crate::bsdf::Bsdf;
 use crate::bvh::Visit;
 use crate::object_walk::WalkVertex;
-use crate::surface::SurfaceKind;
+use crate::surface::{SurfaceKind, offset_ray_origin};
 use glam::Vec3;
 use nppp_estimator::{DecodeRepairs, EstimatorSampler, Exit};
 use nppp_geom::sphere_pair::{Chord, unit_sphere_chord};
@@ -450,9 +450,9 @@ const SURFACE_VERTEX_LIFT: f32 = 0.01;
 
 /// The picked vertex a network's vertex head returned (unit sphere frame)
 /// as the renderer uses it: in mesh space, on the real surface (lifted by
-/// `SURFACE_VERTEX_LIFT`) where `on_surface` finds a point there (mesh-space point, geometric and
-/// shading normals, from the predicted mesh-space position) that faces as
-/// the prediction does (its winding normal on the predicted normal's side,
+/// `SURFACE_VERTEX_LIFT`) where `on_surface` finds a point there
+/// (mesh-space point, geometric and shading normals, from the predicted
+/// mesh-space position) that faces as the prediction does (its winding normal on the predicted normal's side,
 /// and the path arriving on the same side of it: a point of the other side
 /// of a thin part is not where the path scattered), else moved off the
 /// surface by `NETWORK_VERTEX_OFFSET`; no light sample when it carries no
@@ -472,17 +472,12 @@ pub fn network_skipped(
         };
         let surface = on_surface(sphere.from_unit_point(v.position)).filter(faces_alike);
         let surface = surface.map(|(p, ng, ns)| {
-            let side = if ng.dot(v.wo) >= 0.0 { ng } else { -ng };
-            (p + side * (SURFACE_VERTEX_LIFT * sphere.radius), ng, ns)
+            let lift = SURFACE_VERTEX_LIFT * sphere.radius;
+            (offset_ray_origin(p, ng, v.wo, lift), ng, ns)
         });
         let (point, ng, ns) = surface.unwrap_or_else(|| {
-            let side = if v.normal.dot(v.wo) >= 0.0 {
-                v.normal
-            } else {
-                -v.normal
-            };
-            let point = sphere.from_unit_point(v.position + side * NETWORK_VERTEX_OFFSET);
-            (point, v.normal, v.normal)
+            let pushed = offset_ray_origin(v.position, v.normal, v.wo, NETWORK_VERTEX_OFFSET);
+            (sphere.from_unit_point(pushed), v.normal, v.normal)
         });
         let vertex = WalkVertex {
             point,
@@ -962,7 +957,7 @@ impl Estimators {
                         },
                         _ => EstimatorModel::Neural { sampler },
                     };
-                    let est = Estimator {
+                    let mut est = Estimator {
                         model,
                         sphere,
                         mesh: inst.mesh,
@@ -972,11 +967,11 @@ impl Estimators {
                         entry_nee: EntryNee::Off,
                         surface_snap: None,
                     };
-                    Estimator {
-                        surface_snap: (est.has_vertex_head() && est.takes_light_samples())
-                            .then(|| crate::surface_snap::SurfaceSnap::build(mesh, &sphere)),
-                        ..est
+                    if est.has_vertex_head() && est.takes_light_samples() {
+                        est.surface_snap =
+                            Some(crate::surface_snap::SurfaceSnap::build(mesh, &sphere));
                     }
+                    est
                 }
             };
             list.push(est);
