@@ -331,11 +331,10 @@ impl RenderScene {
             Some(n) => {
                 let [n0, n1, n2] = n[h.prim as usize];
                 let b0 = 1.0 - h.b1 - h.b2;
-                let s = x
-                    .dir_to_world(n0 * b0 + n1 * h.b1 + n2 * h.b2)
-                    .normalize_or_zero();
-                // A shading normal on the far side of the surface is meaningless: fall back.
-                if s.dot(ng) > 0.0 { s } else { ng }
+                crate::surface::shading_normal_on_side(
+                    x.dir_to_world(n0 * b0 + n1 * h.b1 + n2 * h.b2),
+                    ng,
+                )
             }
             None => ng,
         };

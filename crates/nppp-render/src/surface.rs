@@ -59,7 +59,16 @@ pub const OFFSET_REL: f32 = 2e-5;
 /// meaningless) or are zero (a flat mesh).
 #[inline]
 pub fn interpolated_normal(n: [Vec3; 3], b1: f32, b2: f32, ng: Vec3) -> Vec3 {
-    let s = (n[0] * (1.0 - b1 - b2) + n[1] * b1 + n[2] * b2).normalize_or_zero();
+    shading_normal_on_side(n[0] * (1.0 - b1 - b2) + n[1] * b1 + n[2] * b2, ng)
+}
+
+/// An interpolated (not yet unit) shading normal `s` made unit, or `ng`
+/// where it points to the other side of the surface or is zero: the rule
+/// of [`interpolated_normal`], for callers that move `s` to another space
+/// first.
+#[inline]
+pub fn shading_normal_on_side(s: Vec3, ng: Vec3) -> Vec3 {
+    let s = s.normalize_or_zero();
     if s.dot(ng) > 0.0 { s } else { ng }
 }
 
