@@ -224,8 +224,11 @@ pub fn run(a: &GenArgs) -> Result<()> {
             100.0 * st.hit_fraction()
         ));
     };
+    // Checked free above unless --overwrite; a file that appears there while
+    // the rays are traced (another run finishing first) is not replaced.
     let options = WriterOptions {
         compress: !a.no_compress,
+        replace: a.overwrite,
         ..WriterOptions::default()
     };
     let cpu0 = process_cpu_seconds();

@@ -115,6 +115,8 @@ fn main() {
         // thread exists. Training and baking are left as they were.
         unsafe { nppp_nn::backend::single_threaded_gemm() };
     }
+    // SAFETY: as above, no thread exists yet.
+    unsafe { pin_pool_size(cli.command.threads()) };
     if let Err(e) = run(cli) {
         nppp_files::note!("error: {e:#}");
         std::process::exit(1);
@@ -141,6 +143,61 @@ fn keep_existing_data(out: &std::path::Path, overwrite: bool, command: &str) -> 
     Ok(())
 }
 
+/// The most threads a pool may have ([`MAX_THREADS_PER_CORE`] per core),
+/// and the cores.
+fn most_threads() -> (usize, usize) {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    (MAX_THREADS_PER_CORE * cores.max(1), cores)
+}
+
+/// Every thread pool the process makes without a size takes it from
+/// `RAYON_NUM_THREADS`: the global one without `--threads`, and the pools
+/// that exr builds for each image it compresses or reads. The variable is
+/// set to `--threads` where given (so that it bounds those too), and capped
+/// at [`most_threads`] otherwise (5000 made an 8x8 render take 42 s, with
+/// `--threads 2` 18 s, in exr's pools).
+///
+/// # Safety
+/// Must run before any thread exists (it sets an environment variable).
+unsafe fn pin_pool_size(threads: Option<&Threads>) {
+    const VAR: &str = "RAYON_NUM_THREADS";
+    let (most, cores) = most_threads();
+    let size = match threads.and_then(|t| t.threads) {
+        // Larger: refused by Threads::install before any work.
+        Some(t) => (t <= most).then_some(t),
+        None => {
+            let asked = std::env::var(VAR)
+                .ok()
+                .and_then(|v| v.trim().parse::<usize>().ok());
+            asked.filter(|&n| n > most).map(|n| {
+                nppp_files::note!(
+                    "warning: {VAR}={n}: using {most} threads ({MAX_THREADS_PER_CORE} per \
+                     core; this machine has {cores})"
+                );
+                most
+            })
+        }
+    };
+    if let Some(n) = size {
+        // SAFETY: the caller guarantees that no other thread exists.
+        unsafe { std::env::set_var(VAR, n.to_string()) };
+    }
+}
+
+impl Command {
+    /// The command's `--threads`, for those that have it.
+    fn threads(&self) -> Option<&Threads> {
+        match self {
+            Command::Render { threads, .. }
+            | Command::Gen { threads, .. }
+            | Command::Train { threads, .. }
+            | Command::Bake { threads, .. }
+            | Command::Bench { threads, .. } => Some(threads),
+            _ => None,
+        }
+    }
+}
+
 impl Threads {
     /// Sizes the global thread pool (rayon: the renderer, data generation
     /// and Burn's CPU backends all run on it).
@@ -148,8 +205,7 @@ impl Threads {
         if let Some(t) = self.threads {
             // Far more threads than cores only adds scheduling (a typo of
             // 100000 took minutes to start and stop its pool).
-            let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let most = MAX_THREADS_PER_CORE * cores.max(1);
+            let (most, cores) = most_threads();
             anyhow::ensure!(
                 t <= most,
                 "--threads {t}: at most {most} ({MAX_THREADS_PER_CORE} per core; this machine has {cores})"
@@ -243,7 +299,8 @@ fn print_summary(r: &impl std::fmt::Display) -> Result<()> {
 
 /// Signals that end a job besides Ctrl-C, SIGTERM and SIGHUP (which
 /// `ctrlc` handles): a batch system's soft CPU limit (SIGXCPU), a timer
-/// (SIGALRM, SIGVTALRM) or a user's SIGUSR1/2. Their default action ends
+/// (SIGALRM, SIGVTALRM), a user's SIGUSR1/2 or Ctrl-\ (SIGQUIT, whose core
+/// dump is of no use to a user of a release build). Their default action ends
 /// the process at once, which left `nppp gen`'s temporary file; the first
 /// of them is turned into a SIGTERM, so it ends a command as SIGTERM does,
 /// and the rest are ignored: SIGXCPU comes again every CPU-second past the
@@ -264,6 +321,7 @@ fn forward_stop_signals_as_term() {
     }
     let handler = raise_term as extern "C" fn(libc::c_int) as libc::sighandler_t;
     for sig in [
+        libc::SIGQUIT,
         libc::SIGXCPU,
         libc::SIGALRM,
         libc::SIGVTALRM,
@@ -333,8 +391,7 @@ fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Info { file } => {
-            let b = nppp_estimator::BakedEstimator::load(&file)?;
-            print_summary(&b.describe())
+            print_summary(&nppp_estimator::BakedEstimator::describe_file(&file)?)
         }
     }
 }

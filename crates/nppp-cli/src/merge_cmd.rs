@@ -203,7 +203,7 @@ fn merge_data(a: &MergeArgs) -> Result<()> {
     nppp_files::check_writable(&a.out)
         .map_err(|e| anyhow::anyhow!("--out {}: {e}", a.out.display()))?;
     let parts: Vec<&Path> = a.parts.iter().map(|p| p.as_path()).collect();
-    let s = nppp_estimator::shard::merge_datasets(&parts, &a.out)?;
+    let s = nppp_estimator::shard::merge_datasets(&parts, &a.out, a.overwrite)?;
     nppp_files::note!(
         "{}: {} parts, {} rays ({} hits, {} exits) in {} chunks, {}",
         s.path.display(),

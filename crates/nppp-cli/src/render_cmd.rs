@@ -529,7 +529,13 @@ pub fn run(a: &RenderArgs) -> Result<()> {
              with --min-bounces / --entry-nee to set them"
         );
     }
-    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene) {
+    let pixel_bytes = nppp_render::scene_data::RENDER_BYTES_PER_PIXEL
+        + if a.auto_confirm {
+            nppp_render::scene_data::AUTO_CONFIRM_BYTES_PER_PIXEL
+        } else {
+            0
+        };
+    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene, pixel_bytes) {
         bail!("{}: {problem}", a.scene.display());
     }
     let mut rs = RenderScene::with_estimators(&scene, mode, settings.estimator_min_bounces)
@@ -779,8 +785,17 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         "work: {}",
         nppp_render::auto::describe_work(&stats.work, &stats.estimators)
     );
+    // Four decimals; a huge or tiny mean (a lamp of 1e30, or of 1e-30) in
+    // e-notation, not forty digits or zeros.
+    let mean = |x: f64| {
+        if x != 0.0 && !(1e-4..1e6).contains(&x.abs()) {
+            format!("{x:.4e}")
+        } else {
+            format!("{x:.4}")
+        }
+    };
     nppp_files::note!(
-        "{}: {}x{} spp {} M {} in {:.2}s (scene build {:.2}s), {:.3} M samples/s, mean rgb [{:.4} {:.4} {:.4}]{}",
+        "{}: {}x{} spp {} M {} in {:.2}s (scene build {:.2}s), {:.3} M samples/s, mean rgb [{} {} {}]{}",
         a.out.display(),
         img.width,
         img.height,
@@ -789,9 +804,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         stats.seconds,
         build,
         stats.samples_per_second() / 1e6,
-        m[0],
-        m[1],
-        m[2],
+        mean(m[0]),
+        mean(m[1]),
+        mean(m[2]),
         if stats.dropped_samples > 0 {
             format!(", {} non-finite samples dropped", stats.dropped_samples)
         } else {
@@ -932,11 +947,27 @@ fn part_settings(
 /// probably wrong for this object (a well-trained one repairs well under 1%).
 const SUSPICIOUS_REPAIR_SHARE: f64 = 0.05;
 
+/// Rays that crossed estimator spheres and were all turned away, above
+/// which a render with no entry at all says so: the objects vanished for
+/// paths past P (a rare legitimate case: rays through a sphere that all miss
+/// a thin object's bounds).
+const SUSPICIOUS_SKIPS_WITHOUT_ENTRY: u64 = 1000;
+
 /// What a render's estimator counts say about the result, when it is
 /// probably wrong, with what to do.
 fn estimator_warnings(st: &nppp_render::estimator::EstimatorStats) -> Vec<String> {
     let mut w = Vec::new();
     if st.entries == 0 {
+        if st.mask_skips >= SUSPICIOUS_SKIPS_WITHOUT_ENTRY {
+            w.push(format!(
+                "no path entered an estimator, though {} rays crossed their spheres and were \
+                 turned away: their objects are invisible to paths past P. If they should be \
+                 seen there, the estimator's entry mask refuses every ray (a damaged file, or \
+                 one made for another object): check it with `nppp info FILE`, or compare with \
+                 --estimators oracle",
+                st.mask_skips
+            ));
+        }
         return w;
     }
     let share = |n: u64| n as f64 / st.entries as f64;
@@ -1011,5 +1042,17 @@ mod tests {
         );
         st.entries = 0;
         assert!(estimator_warnings(&st).is_empty());
+        // Rays turned away and none let in: the objects vanished.
+        st.mask_skips = 999;
+        assert!(
+            estimator_warnings(&st).is_empty(),
+            "a few misses say nothing"
+        );
+        st.mask_skips = 41_300;
+        let w = estimator_warnings(&st);
+        assert!(
+            w.len() == 1 && w[0].contains("41300 rays") && w[0].contains("oracle"),
+            "{w:?}"
+        );
     }
 }

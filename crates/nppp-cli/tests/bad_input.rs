@@ -1515,6 +1515,7 @@ fn tiny_dataset(path: &Path) {
         WriterOptions {
             chunk_rays: 4,
             compress: false,
+            replace: true,
         },
     )
     .unwrap();

@@ -240,13 +240,14 @@ fn merge_refuses_parts_of_other_renders_and_gaps() {
             "checksum",
         ),
         (
-            "version2.nppr",
+            // A part of the format before this one (four-limb films).
+            "version1.nppr",
             {
                 let mut b = bytes.clone();
-                b[8] = 2;
+                b[8] = 1;
                 b
             },
-            "version 2",
+            "render part version 1; this build reads version 2",
         ),
         // An OpenEXR file's magic number, then anything.
         (

@@ -516,11 +516,24 @@ impl BakedEstimator {
         Some(Self { meta, latent, mask, decoder, transform, vertex })
     }
 
-    /// Human-readable summary for `nppp info`.
+    /// `nppp info`: the file's summary ([`Self::describe`]) with the
+    /// format version it was written in (an older one than this build
+    /// writes still loads).
+    pub fn describe_file(path: &Path) -> Result<String, EstimatorFileError> {
+        let bytes = nppp_files::read_regular(path).map_err(|err| EstimatorFileError::Io { path: path.into(), err })?;
+        let est = Self::from_bytes(&bytes, path)?;
+        Ok(est.describe_as(read_u32(&bytes, 8).unwrap_or(ESTIMATOR_VERSION)))
+    }
+
+    /// Human-readable summary, with the format version it is saved in.
     pub fn describe(&self) -> String {
+        self.describe_as(ESTIMATOR_VERSION)
+    }
+
+    fn describe_as(&self, version: u32) -> String {
         let m = &self.meta;
         let mut s = String::new();
-        let _ = writeln!(s, "nppp estimator (format version {ESTIMATOR_VERSION})");
+        let _ = writeln!(s, "nppp estimator (format version {version})");
         let _ = writeln!(s, "  mesh:      {} (content hash {:016x})", m.mesh_name, m.mesh_hash);
         let _ = writeln!(s, "  material:  {} (content hash {:016x})", m.material_name, m.material_hash);
         let c = m.sphere.center;
@@ -661,6 +674,13 @@ pub(crate) mod tests {
         v1[8..12].copy_from_slice(&1u32.to_le_bytes());
         assert_eq!(BakedEstimator::from_bytes(&v1, Path::new("old.nppp")).unwrap(), plain);
         assert!(plain.describe().contains("vertex head: none"));
+        // `nppp info` says which version the file is, not this build's.
+        let d = tmpdir("describe-v1");
+        std::fs::write(d.join("old.nppp"), &v1).unwrap();
+        let info = BakedEstimator::describe_file(&d.join("old.nppp")).unwrap();
+        assert!(info.starts_with("nppp estimator (format version 1)"), "{info}");
+        assert!(plain.describe().starts_with(&format!("nppp estimator (format version {ESTIMATOR_VERSION})")));
+        let _ = std::fs::remove_dir_all(&d);
         // A head with another latent size cannot be attached.
         let e = tiny_estimator(4, 3, 8).with_vertex_head(tiny_vertex_head(5, 3)).unwrap_err().to_string();
         assert!(e.contains("vertex decoder takes 8 inputs"), "{e}");

@@ -53,8 +53,9 @@ fn merge_err(msg: String) -> DatasetError {
 
 /// Merges the shards at `parts` (any order) into `out`: checks that they are
 /// shards of one data set (same object, recipe and seed) that hold each of
-/// its rays exactly once, then copies their chunks in ray order.
-pub fn merge_datasets(parts: &[&Path], out: &Path) -> Result<DatasetSummary, DatasetError> {
+/// its rays exactly once, then copies their chunks in ray order. `replace`:
+/// put `out` in place over a file there (see [`WriterOptions::replace`]).
+pub fn merge_datasets(parts: &[&Path], out: &Path, replace: bool) -> Result<DatasetSummary, DatasetError> {
     if parts.is_empty() {
         return Err(merge_err("no parts to merge".into()));
     }
@@ -116,7 +117,7 @@ pub fn merge_datasets(parts: &[&Path], out: &Path) -> Result<DatasetSummary, Dat
         }
     }
     readers.sort_by_key(|(_, s, _)| (s.first_ray, s.end_ray));
-    let options = WriterOptions { chunk_rays: first_shard.chunk_rays, compress: first_shard.compress };
+    let options = WriterOptions { chunk_rays: first_shard.chunk_rays, compress: first_shard.compress, replace };
     let mut w = DatasetWriter::create_with(out, first_header, options)?;
     for (_, _, r) in &mut readers {
         for c in 0..r.chunk_count() {

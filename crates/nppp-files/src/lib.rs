@@ -114,8 +114,27 @@ static WRITTEN: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 /// contents) or finds the output in place and says so. Without the lock a
 /// signal during the rename reported old contents for a file already new.
 fn rename_into_place(tmp: &Path, path: &Path) -> io::Result<()> {
+    put_into_place(tmp, path, true)
+}
+
+/// [`rename_into_place`], or (`replace` false) never over an existing file:
+/// the output is linked to its new name, which fails where a file already
+/// has it, and the temporary name removed. A filesystem without hard links
+/// gets a check and a rename (a window the link closes).
+fn put_into_place(tmp: &Path, path: &Path, replace: bool) -> io::Result<()> {
     let mut list = pending();
-    std::fs::rename(tmp, path)?;
+    if replace {
+        std::fs::rename(tmp, path)?;
+    } else {
+        match std::fs::hard_link(tmp, path) {
+            Ok(()) => std::fs::remove_file(tmp)?,
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => return Err(e),
+            Err(_) if path.symlink_metadata().is_ok() => {
+                return Err(io::Error::from(io::ErrorKind::AlreadyExists));
+            }
+            Err(_) => std::fs::rename(tmp, path)?,
+        }
+    }
     if let Some(i) = list.iter().rposition(|p| p == tmp) {
         list.swap_remove(i);
     }
@@ -337,25 +356,91 @@ impl AtomicFile {
 
     /// Flushes the data to disk and renames the file into place.
     pub fn commit(mut self) -> io::Result<()> {
+        self.finish(true)
+    }
+
+    /// [`Self::commit`], but never over a file that has appeared at the
+    /// path since the command checked it was free (another run that
+    /// finished first): the data is then kept beside it, under
+    /// `<stem>.<pid>.<extension>`, and the error says so. For outputs that
+    /// took long to make and that a command replaces only when told to
+    /// (`gen --overwrite`).
+    pub fn commit_new(mut self) -> io::Result<()> {
+        match self.finish(false) {
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {
+                let saved = match keep_beside(&self.tmp, &self.path) {
+                    Some(k) => format!("this run's output is kept as {}", k.display()),
+                    None => "this run's output could not be kept".to_string(),
+                };
+                Err(io::Error::new(
+                    io::ErrorKind::AlreadyExists,
+                    format!(
+                        "a file appeared at this path while the command ran (another run?) \
+                         and was left as it was; {saved}"
+                    ),
+                ))
+            }
+            other => other,
+        }
+    }
+
+    /// Flushes, syncs and puts the file into place (`replace`: over an
+    /// existing one). Where `replace` is false and a file is in the way,
+    /// the temporary file is kept, still tracked, for [`keep_beside`].
+    fn finish(&mut self, replace: bool) -> io::Result<()> {
         let w = self
             .file
             .take()
             .ok_or_else(|| io::Error::other("already committed"))?;
-        let result = (|| {
+        let result: io::Result<()> = (|| {
             let file = w.into_inner().map_err(|e| e.into_error())?;
             file.sync_all()?;
             drop(file);
             crash_point(&format!("before-rename:{}", file_label(&self.path)));
-            rename_into_place(&self.tmp, &self.path)?;
+            put_into_place(&self.tmp, &self.path, replace)?;
             sync_parent(&self.path);
             Ok(())
         })();
-        if result.is_err() {
-            let _ = std::fs::remove_file(&self.tmp);
+        let in_the_way = matches!(&result, Err(e) if e.kind() == io::ErrorKind::AlreadyExists);
+        if !(in_the_way && !replace) {
+            if result.is_err() {
+                let _ = std::fs::remove_file(&self.tmp);
+            }
+            untrack(&self.tmp);
         }
-        untrack(&self.tmp);
         result
     }
+}
+
+/// Puts the finished temporary file `tmp` at a free name beside `path`
+/// (`<stem>.<pid>.<extension>`, then `.<pid>-1.` and on), never over a file;
+/// removes it where none can be had.
+fn keep_beside(tmp: &Path, path: &Path) -> Option<PathBuf> {
+    let stem = path.file_stem()?.to_string_lossy().into_owned();
+    let ext = path
+        .extension()
+        .map(|e| format!(".{}", e.to_string_lossy()))
+        .unwrap_or_default();
+    let pid = std::process::id();
+    for k in 0..100 {
+        let tag = if k == 0 {
+            pid.to_string()
+        } else {
+            format!("{pid}-{k}")
+        };
+        let alt = path.with_file_name(format!("{stem}.{tag}{ext}"));
+        match put_into_place(tmp, &alt, false) {
+            Ok(()) => {
+                sync_parent(&alt);
+                return Some(alt);
+            }
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => continue,
+            Err(_) => break,
+        }
+    }
+    let _ = std::fs::remove_file(tmp);
+    untrack(tmp);
+    None
 }
 
 impl Write for AtomicFile {
@@ -451,15 +536,47 @@ fn file_label(path: &Path) -> String {
     }
 }
 
+/// The longest file name (one part of a path) in bytes: Linux's NAME_MAX on
+/// its file systems (ext4, xfs, btrfs, tmpfs) and macOS's.
+pub const NAME_MAX_BYTES: usize = 255;
+/// Linux's PATH_MAX: a path passed to the kernel is shorter.
+pub const PATH_MAX_BYTES: usize = 4096;
+
 /// Checks, before any work, that a file can be created at `path`: it names a
-/// file, not a folder, and the nearest existing ancestor folder accepts a
-/// new file (tried with a probe removed at once). Creates nothing that stays.
+/// file, not a folder, its name and path are not too long, and the nearest
+/// existing ancestor folder accepts a new file (tried with a probe removed
+/// at once). Creates nothing that stays.
 pub fn check_writable(path: &Path) -> Result<(), String> {
     if path.file_name().is_none() || path.as_os_str().to_string_lossy().ends_with('/') {
         return Err("names a folder, not a file".into());
     }
     if path.is_dir() {
         return Err("is a folder".into());
+    }
+    // The probe below goes under a short name, which the file system takes
+    // whatever the real name's length: names too long for it failed only
+    // when the output was put in place, after all the work.
+    if let Some(c) = path
+        .components()
+        .find(|c| c.as_os_str().len() > NAME_MAX_BYTES)
+    {
+        return Err(format!(
+            "cannot be written: its part \"{}…\" is {} bytes, more than the {NAME_MAX_BYTES} a \
+             file name may have",
+            c.as_os_str()
+                .to_string_lossy()
+                .chars()
+                .take(32)
+                .collect::<String>(),
+            c.as_os_str().len()
+        ));
+    }
+    if path.as_os_str().len() >= PATH_MAX_BYTES {
+        return Err(format!(
+            "cannot be written: the path is {} bytes, more than the {} a path may have",
+            path.as_os_str().len(),
+            PATH_MAX_BYTES - 1
+        ));
     }
     let parent = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
@@ -856,6 +973,31 @@ mod tests {
         }
         assert_eq!(std::fs::read(&p).unwrap(), b"old");
         assert_eq!(std::fs::read_dir(&d).unwrap().count(), 1);
+    }
+
+    /// `commit_new` puts a file where none is, and where one appeared while
+    /// it was written (another run finishing first) leaves that one as it
+    /// was and keeps its own data beside it, saying where.
+    #[test]
+    fn commit_new_never_replaces_a_file_that_appeared() {
+        let d = scratch("commit-new");
+        let p = d.join("data.nppd");
+        let mut f = AtomicFile::create(&p).unwrap();
+        f.write_all(b"first").unwrap();
+        f.commit_new().unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), b"first");
+
+        let mut f = AtomicFile::create(&p).unwrap();
+        f.write_all(b"second").unwrap();
+        let e = f.commit_new().unwrap_err();
+        assert_eq!(e.kind(), io::ErrorKind::AlreadyExists);
+        assert_eq!(std::fs::read(&p).unwrap(), b"first");
+        let kept = d.join(format!("data.{}.nppd", std::process::id()));
+        assert!(e.to_string().contains(&kept.display().to_string()), "{e}");
+        assert_eq!(std::fs::read(&kept).unwrap(), b"second");
+        // Nothing else: no temporary file left.
+        assert_eq!(std::fs::read_dir(&d).unwrap().count(), 2);
+        assert!(pending().iter().all(|t| !t.starts_with(&*d)));
     }
 
     #[test]

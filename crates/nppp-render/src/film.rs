@@ -13,20 +13,24 @@
 
 use glam::Vec3;
 
-/// Exponent of the unit of [`ExactSum`]: one unit is 2^-95. f32 values below
-/// that lose their lowest bits (truncated toward zero, the same for every
-/// sample whatever the grouping; they are below 2.6e-29).
-pub const EXACT_SUM_UNIT_EXP: i32 = -95;
+/// Exponent of the unit of [`ExactSum`]: one unit is 2^-149, f32's
+/// smallest subnormal, so every finite f32 is a whole number of units and
+/// is added exactly. (A unit of 2^-95 dropped samples below 2.6e-29: a lamp
+/// of radiance 1e-30, valid under the contract's arbitrary units, rendered
+/// black.)
+pub const EXACT_SUM_UNIT_EXP: i32 = -149;
+/// 64-bit limbs of an [`ExactSum`].
+pub const EXACT_SUM_LIMBS: usize = 5;
 
-/// The sum of up to 2^32 f32 values as a 256-bit two's-complement integer in
-/// units of 2^-95: f32's largest value (< 2^128) times 2^32 samples is
-/// < 2^160 = 2^255 units, so no sum of a u32 count of finite samples
+/// The sum of up to 2^32 f32 values as a 320-bit two's-complement integer in
+/// units of 2^-149: f32's largest value (< 2^128) times 2^32 samples is
+/// < 2^160 = 2^309 units, so no sum of a u32 count of finite samples
 /// overflows. Limbs are little-endian.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
-pub struct ExactSum(pub [u64; 4]);
+pub struct ExactSum(pub [u64; EXACT_SUM_LIMBS]);
 
 impl ExactSum {
-    /// Adds `x` exactly (but for its bits below 2^-95). `x` must be finite.
+    /// Adds `x` exactly. `x` must be finite.
     #[inline]
     pub fn add_f32(&mut self, x: f32) {
         let bits = x.to_bits();
@@ -41,22 +45,14 @@ impl ExactSum {
         if mantissa == 0 {
             return;
         }
-        let shift = exp - EXACT_SUM_UNIT_EXP;
-        let mut v = [0u64; 4];
-        if shift < 0 {
-            if shift <= -24 {
-                return;
-            }
-            v[0] = mantissa >> -shift;
-        } else {
-            // shift <= 104 + 95 = 199: the 24-bit mantissa spans at most two limbs.
-            let (limb, offset) = ((shift / 64) as usize, shift % 64);
-            let wide = u128::from(mantissa) << offset;
-            v[limb] = wide as u64;
-            if limb + 1 < 4 {
-                v[limb + 1] = (wide >> 64) as u64;
-            }
-        }
+        // 0 <= shift <= 104 + 149 = 253: the 24-bit mantissa spans at most
+        // two limbs, the upper one at most limb 4.
+        let shift = (exp - EXACT_SUM_UNIT_EXP) as u32;
+        let (limb, offset) = ((shift / 64) as usize, shift % 64);
+        let wide = u128::from(mantissa) << offset;
+        let mut v = [0u64; EXACT_SUM_LIMBS];
+        v[limb] = wide as u64;
+        v[limb + 1] = (wide >> 64) as u64;
         if bits >> 31 == 0 {
             self.add(&ExactSum(v));
         } else {
@@ -64,7 +60,7 @@ impl ExactSum {
         }
     }
 
-    /// Adds another sum (modulo 2^256, which the bound above never reaches).
+    /// Adds another sum (modulo 2^320, which the bound above never reaches).
     #[inline]
     pub fn add(&mut self, o: &ExactSum) {
         let mut carry = false;
@@ -80,12 +76,14 @@ impl ExactSum {
         for l in &mut self.0 {
             *l = !*l;
         }
-        self.add(&ExactSum([1, 0, 0, 0]));
+        let mut one = ExactSum::default();
+        one.0[0] = 1;
+        self.add(&one);
         self
     }
 
     fn is_negative(&self) -> bool {
-        self.0[3] >> 63 == 1
+        self.0[EXACT_SUM_LIMBS - 1] >> 63 == 1
     }
 
     /// The sum as an f64: the top 128 significant bits rounded to nearest,
@@ -94,7 +92,7 @@ impl ExactSum {
         if self.is_negative() {
             return -self.negated().to_f64();
         }
-        let Some(top) = (0..4).rev().find(|&i| self.0[i] != 0) else {
+        let Some(top) = (0..EXACT_SUM_LIMBS).rev().find(|&i| self.0[i] != 0) else {
             return 0.0;
         };
         let (wide, low_limb) = if top == 0 {
@@ -185,9 +183,12 @@ mod tests {
         assert_eq!(sum_of(&[f32::MAX; 4]).to_f64(), 4.0 * f32::MAX as f64);
         assert_eq!(sum_of(&[-2.5, 0.5]).to_f64(), -2.0);
         assert_eq!(sum_of(&[]).to_f64(), 0.0);
-        // Subnormals below the unit vanish, those above it are kept.
-        assert_eq!(sum_of(&[f32::from_bits(1)]).to_f64(), 0.0);
+        // Every f32 counts, the smallest subnormal included.
+        let tiny = f32::from_bits(1);
+        assert_eq!(sum_of(&[tiny]).to_f64(), 2f64.powi(-149));
+        assert_eq!(sum_of(&[tiny, tiny, -tiny]).to_f64(), 2f64.powi(-149));
         assert_eq!(sum_of(&[2f32.powi(-90)]).to_f64(), 2f64.powi(-90));
+        assert_eq!(sum_of(&[1e-30, 1e30, -1e30]).to_f64(), 1e-30f32 as f64);
     }
 
     #[test]
@@ -212,7 +213,8 @@ mod tests {
         #[test]
         fn grouping_and_order_do_not_matter(
             xs in prop::collection::vec(
-                prop_oneof![-1e6f32..1e6, 0f32..1e-20, -1e30f32..1e30, Just(0.0f32)], 1..64),
+                prop_oneof![-1e6f32..1e6, 0f32..1e-20, -1e-35f32..1e-35, -1e30f32..1e30,
+                    Just(0.0f32)], 1..64),
             cut in 0usize..64,
         ) {
             let cut = cut.min(xs.len());

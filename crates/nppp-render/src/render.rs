@@ -94,7 +94,7 @@ pub fn render_after(
 /// the film: each pixel's exact sums, row-major. Films of disjoint sample
 /// ranges merge ([`PixelSum::merge`]) into exactly the film of their union,
 /// so their means are bit for bit those of [`render`] (`nppp render
-/// --shard`). The film takes 104 bytes per pixel.
+/// --shard`). The film takes 128 bytes per pixel.
 pub fn render_film(
     scene: &RenderScene,
     opts: &RenderOptions,

@@ -14,11 +14,11 @@
 //! ([`RenderPartHeader`]), u32 CRC-32 of version, length and JSON; then u64
 //! payload length as stored, u64 raw length, the payload (deflate), u32
 //! CRC-32 of the stored payload, `PEND`. The raw payload is columns over the
-//! pixels in row-major order: for each channel r, g, b and each limb 0..4 of
-//! its [`crate::film::ExactSum`] a u64 per pixel, then the valid counts (u32 per pixel),
+//! pixels in row-major order: for each channel r, g, b and each limb of
+//! its [`crate::film::ExactSum`] (`EXACT_SUM_LIMBS`, 5) a u64 per pixel, then the valid counts (u32 per pixel),
 //! then the dropped counts (u32 per pixel).
 
-use crate::film::PixelSum;
+use crate::film::{EXACT_SUM_LIMBS, PixelSum};
 use nppp_estimator::shard::{CoverError, check_cover};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -27,16 +27,18 @@ use std::path::{Path, PathBuf};
 use thiserror::Error;
 
 pub const RENDER_PART_MAGIC: [u8; 8] = *b"NPPPRPT\0";
-pub const RENDER_PART_VERSION: u32 = 1;
+/// 2: films of five limbs in units of 2^-149 (version 1: four, 2^-95).
+pub const RENDER_PART_VERSION: u32 = 2;
 const END_MAGIC: [u8; 4] = *b"PEND";
 const MAX_HEADER_LEN: u32 = 1 << 20;
-/// Raw bytes per pixel: 3 channels x 4 limbs x 8, valid and dropped counts.
-pub const PART_BYTES_PER_PIXEL: u64 = 3 * 4 * 8 + 4 + 4;
+/// Raw bytes per pixel: 3 channels x 5 limbs x 8, valid and dropped counts.
+pub const PART_BYTES_PER_PIXEL: u64 = 3 * EXACT_SUM_LIMBS as u64 * 8 + 4 + 4;
 /// What merging parts holds at its peak, per pixel: the merged film, and
 /// of the part being read its raw columns with either its compressed bytes
 /// (at most 1/8 over raw) or its decoded film; then the image and its EXR
-/// rows (f32 RGB, twice). Measured: 320 bytes a pixel at 4096 x 4096 with
-/// two parts; the 220 once counted let a merge pass the check and abort.
+/// rows (f32 RGB, twice). Measured with four-limb films: 320 bytes a pixel at
+/// 4096 x 4096 with two parts (this formula gave 349 then); the 220 once
+/// counted let a merge pass the check and abort.
 pub const MERGE_BYTES_PER_PIXEL: u64 = 3 * PART_BYTES_PER_PIXEL + PART_BYTES_PER_PIXEL / 8 + 2 * 12;
 
 /// What a part belongs to and which samples it holds.
@@ -123,7 +125,7 @@ pub fn write_part(
     let json = serde_json::to_vec(header).map_err(|e| file_err(path, e.to_string()))?;
     let mut raw = Vec::with_capacity(film.len() * PART_BYTES_PER_PIXEL as usize);
     for c in 0..3 {
-        for l in 0..4 {
+        for l in 0..EXACT_SUM_LIMBS {
             for p in film {
                 raw.extend_from_slice(&p.sum[c].0[l].to_le_bytes());
             }
@@ -306,14 +308,14 @@ pub fn read_part(path: &Path) -> Result<(RenderPartHeader, Vec<PixelSum>), Rende
     let n = n as usize;
     let mut film = vec![PixelSum::default(); n];
     for c in 0..3 {
-        for l in 0..4 {
-            let col = (c * 4 + l) * n * 8;
+        for l in 0..EXACT_SUM_LIMBS {
+            let col = (c * EXACT_SUM_LIMBS + l) * n * 8;
             for (i, p) in film.iter_mut().enumerate() {
                 p.sum[c].0[l] = u64_at(&raw, col + 8 * i);
             }
         }
     }
-    let counts = 96 * n;
+    let counts = 3 * EXACT_SUM_LIMBS * 8 * n;
     let per_pixel = header.samples[1] - header.samples[0];
     let damaged = |i: usize, what: String| {
         file_err(

@@ -17,9 +17,18 @@ use nppp_scene::Scene;
 /// Measured peak resident memory of `nppp render`: 330-340 bytes a triangle
 /// with one to four icospheres of 1.3 M triangles; rounded up.
 pub const RENDER_BYTES_PER_TRIANGLE: u64 = 400;
-/// Memory a render holds per pixel: the film's exact sums (104 bytes), the
-/// image made of them, a reference image, and the preview; rounded up.
-pub const RENDER_BYTES_PER_PIXEL: u64 = 160;
+/// Memory a render holds per pixel: the image (the film's sums are kept a
+/// band of tiles at a time, `render::render`), a reference image, the EXR's
+/// rows and the preview. Measured above the scene's own peak: 16 bytes a
+/// pixel at 4096 x 4096 with `--png`, 19 at 2048 x 2048 with `--reference`;
+/// rounded up. (160 were charged until 2026-11-27, for a full film of sums
+/// no plain render holds: a 4096 x 4096 render was refused under a 1.5 GB
+/// limit it fits in.)
+pub const RENDER_BYTES_PER_PIXEL: u64 = 48;
+/// What `--estimators auto --auto-confirm` holds per pixel beyond
+/// [`RENDER_BYTES_PER_PIXEL`]: the confirmation pass's film of exact sums
+/// at the image's resolution, and its two halves' images.
+pub const AUTO_CONFIRM_BYTES_PER_PIXEL: u64 = crate::render_part::PART_BYTES_PER_PIXEL + 2 * 12;
 /// Memory a render holds per instance: its transforms and bounds, its
 /// share of the TLAS, and the per-instance tables of shading, lights and
 /// estimators. An upper bound: the peak resident memory of `nppp render`
@@ -30,13 +39,15 @@ pub const RENDER_BYTES_PER_INSTANCE: u64 = 1200;
 
 /// Why `scene` cannot be rendered in the memory available, if it cannot:
 /// checked before the acceleration structures are built, so such a scene
-/// gets a message instead of an allocation failure.
-pub fn render_memory_problem(scene: &Scene) -> Option<String> {
-    render_memory_problem_within(scene, nppp_files::available_memory()?)
+/// gets a message instead of an allocation failure. `pixel_bytes`: what the
+/// render holds per pixel ([`RENDER_BYTES_PER_PIXEL`], with
+/// [`AUTO_CONFIRM_BYTES_PER_PIXEL`] added for `--auto-confirm`).
+pub fn render_memory_problem(scene: &Scene, pixel_bytes: u64) -> Option<String> {
+    render_memory_problem_within(scene, pixel_bytes, nppp_files::available_memory()?)
 }
 
 /// [`render_memory_problem`] with `available` bytes.
-fn render_memory_problem_within(scene: &Scene, available: u64) -> Option<String> {
+fn render_memory_problem_within(scene: &Scene, pixel_bytes: u64, available: u64) -> Option<String> {
     let mut used = vec![false; scene.meshes.len()];
     for i in &scene.instances {
         if let Some(u) = used.get_mut(i.mesh) {
@@ -55,7 +66,7 @@ fn render_memory_problem_within(scene: &Scene, available: u64) -> Option<String>
     let parts = [
         triangles.saturating_mul(RENDER_BYTES_PER_TRIANGLE),
         instances.saturating_mul(RENDER_BYTES_PER_INSTANCE),
-        pixels.saturating_mul(RENDER_BYTES_PER_PIXEL),
+        pixels.saturating_mul(pixel_bytes),
     ];
     let need = parts.iter().fold(0u64, |a, &b| a.saturating_add(b));
     (need > available).then(|| {
@@ -369,15 +380,20 @@ mod tests {
         )
         .unwrap();
         // 320 triangles of "ball", once: 128,000 bytes; two instances,
-        // 2,400; an 8x8 image, 10,240.
-        assert_eq!(render_memory_problem_within(&scene, 140_640), None);
-        let msg = render_memory_problem_within(&scene, 140_639).unwrap();
+        // 2,400; an 8x8 image, 3,072.
+        let px = RENDER_BYTES_PER_PIXEL;
+        assert_eq!(render_memory_problem_within(&scene, px, 133_472), None);
+        let msg = render_memory_problem_within(&scene, px, 133_471).unwrap();
         assert!(msg.contains("rendering its 320 triangles"), "{msg}");
         assert!(msg.contains("2 instances and a 8x8 image"), "{msg}");
         assert!(
-            msg.contains("137.34 KiB") && msg.contains("of memory available"),
+            msg.contains("130.34 KiB") && msg.contains("of memory available"),
             "{msg}"
         );
-        assert_eq!(render_memory_problem(&scene), None);
+        // --auto-confirm's film of exact sums: 152 bytes a pixel more.
+        let confirm = px + AUTO_CONFIRM_BYTES_PER_PIXEL;
+        assert_eq!(render_memory_problem_within(&scene, confirm, 143_200), None);
+        assert!(render_memory_problem_within(&scene, confirm, 143_199).is_some());
+        assert_eq!(render_memory_problem(&scene, px), None);
     }
 }

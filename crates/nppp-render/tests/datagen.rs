@@ -468,6 +468,7 @@ fn output_is_identical_at_any_thread_count() {
         let opts = WriterOptions {
             chunk_rays: 128,
             compress: true,
+            replace: true,
         };
         let report = pool
             .install(|| generate(&obj, &c, &path, opts, &mut |_| {}))
@@ -510,6 +511,7 @@ fn data_round_trips_through_the_file() {
         WriterOptions {
             chunk_rays: 100,
             compress: true,
+            replace: true,
         },
         &mut |s| {
             calls += 1;

@@ -6,14 +6,56 @@
 //! Written by hand rather than with tobj because the contract fixes the
 //! triangulation and winding bit for bit and asks for errors with line
 //! numbers, and a general loader makes its own choices on both (tobj may
-//! re-triangulate, merge or reorder vertices). Everything else in the
-//! format (`vt` contents, `o`, `g`, `s`, `usemtl`, `mtllib`, `l`, `p`,
-//! free-form curves) is irrelevant to a single-material triangle mesh and
-//! is skipped; `vt` lines are still counted so that texture indices can be
-//! checked.
+//! re-triangulate, merge or reorder vertices). The rest of the format's
+//! statements (`vt` contents, `o`, `g`, `s`, `usemtl`, `mtllib`, `l`, `p`,
+//! free-form curves) are irrelevant to a single-material triangle mesh and
+//! are skipped; `vt` lines are still counted so that texture indices can be
+//! checked. A statement the format does not have is an error naming its
+//! line: skipped, a mistyped `v` would shift every later index.
 
 use crate::Mesh;
 use glam::Vec3;
+
+/// The OBJ statements (Wavefront's specification, appendix B1) that say
+/// nothing about a single-material triangle mesh and are skipped; any other
+/// statement but `v`, `vn`, `vt` and `f` is an error.
+const SKIPPED_STATEMENTS: &[&str] = &[
+    "vp",
+    "o",
+    "g",
+    "s",
+    "mg",
+    "usemtl",
+    "mtllib",
+    "l",
+    "p",
+    "cstype",
+    "deg",
+    "bmat",
+    "step",
+    "curv",
+    "curv2",
+    "surf",
+    "parm",
+    "trim",
+    "hole",
+    "scrv",
+    "sp",
+    "end",
+    "con",
+    "bevel",
+    "c_interp",
+    "d_interp",
+    "lod",
+    "shadow_obj",
+    "trace_obj",
+    "ctech",
+    "stech",
+    "maplib",
+    "usemap",
+    "call",
+    "csh",
+];
 
 /// What is wrong and, when one line is to blame, its 1-based number.
 #[derive(Debug)]
@@ -133,7 +175,22 @@ pub(crate) fn parse_obj(text: &str, smooth: bool, budget: Option<u64>) -> Result
                 }
                 faces.push((start, n, line));
             }
-            _ => {}
+            Some(k) if SKIPPED_STATEMENTS.contains(&k) => {}
+            Some(k) => {
+                // A typo (`V`, `vv`) or stray bytes (a byte-order mark from
+                // `cat a.obj b.obj`) would drop a vertex silently and shift
+                // every later index: the mesh would render, wrong.
+                return Err(at(
+                    line,
+                    format!(
+                        "unknown statement `{}`: not one of OBJ's (nppp reads v, vn, vt and f, \
+                         in lower case, and skips the others the format has: o, g, s, usemtl, \
+                         mtllib, l, p, free-form curves and surfaces)",
+                        k.escape_debug()
+                    ),
+                ));
+            }
+            None => {}
         }
         let items = positions.len() + normals.len() + corners.len();
         if items >= next_check {
@@ -398,6 +455,31 @@ mod tests {
             s += &format!(" {k}");
         }
         s + "\n"
+    }
+
+    /// The format's other statements are skipped; one it does not have (a
+    /// typo, stray bytes before a `v`) is refused with its line, rather
+    /// than skipped with every later index shifted.
+    #[test]
+    fn unknown_statements_are_refused_known_ones_skipped() {
+        let ok = "mtllib m.mtl\no knot\ng a\ns 1\nusemtl red\nv 0 0 0\nv 1 0 0\nv 0 1 0\n\
+                  vp 0.5\nl 1 2\np 1\nf 1 2 3\n";
+        assert_eq!(parse_obj(ok, false, None).unwrap().triangles.len(), 1);
+        for (bad, what) in [
+            ("V 0 0 0", "`V`"),
+            ("vv 0 0 0", "`vv`"),
+            ("\u{feff}v 0 0 0", "`\\u{feff}v`"),
+            ("F 1 2 3", "`F`"),
+        ] {
+            let text = format!("v 0 0 0\nv 1 0 0\n{bad}\nv 0 1 0\nf 1 2 3\n");
+            let err = parse_obj(&text, false, None).unwrap_err();
+            assert_eq!(err.line, Some(3), "{bad:?}");
+            assert!(
+                err.message.contains(&format!("unknown statement {what}")),
+                "{bad:?}: {}",
+                err.message
+            );
+        }
     }
 
     /// A file that needs more than the budget is refused while it is read,

@@ -98,9 +98,13 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
     // any is benchmarked: a bad second scene used to end the run after the
     // first's hours of renders. Each is read again when its turn comes, so
     // that only one scene's meshes are in memory at a time.
+    let mut inputs = Vec::new();
     for p in &paths {
-        load_for_bench(p, &plan).with_context(|| format!("benchmarking {}", p.display()))?;
+        let scene =
+            load_for_bench(p, &plan).with_context(|| format!("benchmarking {}", p.display()))?;
+        inputs.extend(scene.input_files());
     }
+    check_outputs_spare_inputs(&a.out, &paths, &inputs)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let machine = Machine::probe();
     nppp_files::note!(
@@ -166,6 +170,43 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
     Ok(())
 }
 
+/// Refuses a run whose outputs would replace one of its inputs (a scene, a
+/// mesh, an estimator): the reports, each scene's plots beside them and
+/// its folder of reference and previews, all named after its file.
+fn check_outputs_spare_inputs(
+    out: &Path,
+    paths: &[PathBuf],
+    inputs: &[(String, PathBuf)],
+) -> Result<()> {
+    let inputs: Vec<(&str, &Path)> = inputs
+        .iter()
+        .map(|(w, p)| (w.as_str(), p.as_path()))
+        .collect();
+    let mut outputs: Vec<PathBuf> = ["results", "results.partial"]
+        .iter()
+        .flat_map(|s| ["md", "csv"].map(|e| out.join(format!("{s}.{e}"))))
+        .collect();
+    for p in paths {
+        let name = scene_name(p);
+        outputs.extend(["svg", "png"].map(|e| out.join(format!("{name}.{e}"))));
+        let dir = out.join(&name);
+        if let Some((what, input)) = inputs.iter().find(|(_, i)| nppp_files::is_inside(i, &dir)) {
+            bail!(
+                "--out {}: bench writes {}'s reference and previews into {}, which holds \
+                 {what} ({}); choose another --out",
+                out.display(),
+                p.display(),
+                dir.display(),
+                input.display()
+            );
+        }
+    }
+    for o in &outputs {
+        nppp_files::ensure_not_input("--out", o, &inputs).map_err(anyhow::Error::msg)?;
+    }
+    Ok(())
+}
+
 /// Renders shorter than this are repeated (same seed, so the same image) and
 /// timed by their median, so scheduler noise does not decide a ratio.
 const SHORT_RENDER_S: f64 = 0.5;
@@ -218,7 +259,10 @@ fn load_for_bench(path: &Path, plan: &Plan) -> Result<nppp_scene::Scene> {
         .resize(Some(plan.scale), None, None)
         .map_err(anyhow::Error::msg)?;
     // At the resolution the bench renders (the image counts).
-    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene) {
+    if let Some(problem) = nppp_render::scene_data::render_memory_problem(
+        &scene,
+        nppp_render::scene_data::RENDER_BYTES_PER_PIXEL,
+    ) {
         bail!("{}: {problem}", path.display());
     }
     Ok(scene)

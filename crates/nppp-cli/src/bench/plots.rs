@@ -59,6 +59,21 @@ pub(super) fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
         let num = |c: usize| f[c].parse::<f64>().with_context(bad);
         let (secs, err) = (num(c_s)?, num(c_e)?);
         let spp = f[c_spp].parse::<u32>().with_context(bad)?;
+        // The plots are named after the scene, in --out: a name that is
+        // not a plain file name would write elsewhere (or over a file).
+        let name = f[c_scene];
+        ensure!(
+            !name.is_empty()
+                && !name.starts_with('.')
+                && !name.contains(['/', '\\', '\0'])
+                && name.len() <= 200,
+            "{}:{}: scene {:?} is not a plain file name (the plots are written as \
+             --out/SCENE.svg and .png): empty, starting with a dot, holding a path \
+             separator or over 200 bytes",
+            csv.display(),
+            i + 2,
+            name
+        );
         let entry = scenes
             .entry(f[c_scene].to_string())
             .or_insert_with(|| ((f[c_w].to_string(), f[c_h].to_string()), BTreeMap::new()));

@@ -163,11 +163,16 @@ pub struct WriterOptions {
     pub chunk_rays: u32,
     /// Deflate each chunk (kept raw when that does not make it smaller).
     pub compress: bool,
+    /// Put the file in place over an existing one. Without it a file that
+    /// appeared at the path while the data was made (another run finishing
+    /// first) is left as it was, this one kept beside it, and
+    /// [`DatasetWriter::finish`] says so ([`nppp_files::AtomicFile::commit_new`]).
+    pub replace: bool,
 }
 
 impl Default for WriterOptions {
     fn default() -> Self {
-        Self { chunk_rays: DEFAULT_CHUNK_RAYS, compress: true }
+        Self { chunk_rays: DEFAULT_CHUNK_RAYS, compress: true, replace: true }
     }
 }
 
@@ -707,7 +712,7 @@ impl DatasetWriter {
         let done = (|| {
             let mut f = f;
             f.write_all(&tail)?;
-            f.commit()
+            if self.options.replace { f.commit() } else { f.commit_new() }
         })();
         done.map_err(io)?;
         Ok(DatasetSummary {

@@ -181,7 +181,7 @@ fn round_trip_within_tolerance_and_chunked() {
     recs[0].exits[0].throughput = Vec3::new(1e-7, 7e4, 0.0);
     recs[0].exits[1].bounces = 1000;
     recs[0].exits[2].position *= 3.0;
-    let opts = WriterOptions { chunk_rays: 64, compress: true };
+    let opts = WriterOptions { chunk_rays: 64, compress: true, replace: true };
     let mut w = DatasetWriter::create_with(&path, header(k), opts).unwrap();
     for r in &recs {
         w.write(r).unwrap();
@@ -220,7 +220,7 @@ fn round_trip_within_tolerance_and_chunked() {
     assert_eq!(all[299], r.read_chunk(4).unwrap()[299 - 256]);
     // Raw and compressed files decode to the same records.
     let path2 = tmp("rt-raw");
-    let mut w = DatasetWriter::create_with(&path2, header(k), WriterOptions { chunk_rays: 100, compress: false }).unwrap();
+    let mut w = DatasetWriter::create_with(&path2, header(k), WriterOptions { chunk_rays: 100, compress: false, replace: true }).unwrap();
     recs.iter().for_each(|rec| w.write(rec).unwrap());
     let s2 = w.finish().unwrap();
     assert!(s2.file_bytes > summary.file_bytes);
@@ -265,7 +265,7 @@ fn empty_and_invalid_records() {
 fn small_file(compress: bool) -> (PathBuf, Vec<u8>) {
     let path = tmp(if compress { "corrupt-z" } else { "corrupt" });
     let mut rng = SampleRng::from_seed(5);
-    let mut w = DatasetWriter::create_with(&path, header(4), WriterOptions { chunk_rays: 8, compress }).unwrap();
+    let mut w = DatasetWriter::create_with(&path, header(4), WriterOptions { chunk_rays: 8, compress, replace: true }).unwrap();
     for _ in 0..30 {
         w.write(&synthetic_record(&mut rng, 4, 0.5)).unwrap();
     }
@@ -390,7 +390,7 @@ fn picked_vertices_round_trip_and_are_checked() {
             r
         })
         .collect();
-    let mut w = DatasetWriter::create_with(&path, h.clone(), WriterOptions { chunk_rays: 32, compress: true }).unwrap();
+    let mut w = DatasetWriter::create_with(&path, h.clone(), WriterOptions { chunk_rays: 32, compress: true, replace: true }).unwrap();
     recs.iter().for_each(|r| w.write(r).unwrap());
     // A hit without its vertices, or vertices in data that has none, is refused.
     let mut bad = synthetic_record(&mut rng, 8, 1.0);

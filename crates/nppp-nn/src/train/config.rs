@@ -433,7 +433,10 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
         cfg.eval_rays = v;
     }
     if !(opts.minutes.is_finite() && opts.minutes >= 0.0) {
-        bail!("--minutes {} must be >= 0", opts.minutes);
+        bail!(
+            "--minutes {}: give a finite number of minutes >= 0 (0 = no budget)",
+            opts.minutes
+        );
     }
     cfg.validate()?;
     Ok((cfg, ckpt))
