@@ -401,8 +401,9 @@ impl AtomicFile {
             sync_parent(&self.path);
             Ok(())
         })();
-        let in_the_way = matches!(&result, Err(e) if e.kind() == io::ErrorKind::AlreadyExists);
-        if !(in_the_way && !replace) {
+        let kept = !replace
+            && matches!(&result, Err(e) if e.kind() == io::ErrorKind::AlreadyExists);
+        if !kept {
             if result.is_err() {
                 let _ = std::fs::remove_file(&self.tmp);
             }
