@@ -814,7 +814,7 @@ pub enum EstimatorLoadError {
         err: nppp_estimator::EstimatorFileError,
     },
     #[error(
-        "instances[{instance}].estimator: {file}: this estimator was trained for mesh \"{trained_mesh}\" (hash {trained_mesh_hash:016x}) with material \"{trained_material}\" (hash {trained_material_hash:016x}), but the instance uses mesh \"{mesh}\" (hash {mesh_hash:016x}) with material \"{material}\" (hash {material_hash:016x}). An estimator answers for one mesh and material only: train one for this instance (`nppp gen --scene SCENE --instance {instance}`, then `nppp train` and `nppp bake`: README, \"Set up\"), remove the instance's `estimator` key, or render with `--estimators off`"
+        "instances[{instance}].estimator: {file}: this estimator was trained for mesh \"{trained_mesh}\" (hash {trained_mesh_hash:016x}) with material \"{trained_material}\" (hash {trained_material_hash:016x}), but the instance uses mesh \"{mesh}\" (hash {mesh_hash:016x}) with material \"{material}\" (hash {material_hash:016x}): {what_differs}. An estimator answers for one mesh and material only: train one for this instance (`nppp gen --scene SCENE --instance {instance}`, then `nppp train` and `nppp bake`: README, \"Set up\"), remove the instance's `estimator` key, or render with `--estimators off`"
     )]
     Mismatch {
         file: std::path::PathBuf,
@@ -827,6 +827,9 @@ pub enum EstimatorLoadError {
         mesh_hash: u64,
         material: String,
         material_hash: u64,
+        /// Which of the two differs, in words (a material of the same name
+        /// with other parameters differs by its hash alone).
+        what_differs: &'static str,
     },
     #[error(
         "instances[{instance}].estimator: {file}: its bounding sphere (centre {center}, radius {radius}) does not fit mesh \"{mesh}\" (centre {mesh_center}, radius {mesh_radius}): the file is damaged or was made for other geometry"
@@ -911,6 +914,14 @@ impl Estimators {
                             mesh_hash,
                             material: scene.material_names[inst.material].clone(),
                             material_hash,
+                            what_differs: match (
+                                baked.meta.mesh_hash != mesh_hash,
+                                baked.meta.material_hash != material_hash,
+                            ) {
+                                (true, true) => "the mesh's triangles and the material's parameters differ",
+                                (true, false) => "the mesh's triangles differ",
+                                _ => "the material's parameters differ",
+                            },
                         });
                     }
                     let sphere = baked.meta.sphere;
