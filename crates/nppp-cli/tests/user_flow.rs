@@ -487,6 +487,27 @@ fn gen_on_an_emitter_is_warned_about() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `--estimators neural` at P = 0 on an object that is not translucent (the
+/// corpus' glass ball) says that the camera sees it through the network;
+/// from P = 1, or with the oracle, nothing is said.
+#[test]
+fn neural_p0_on_a_surface_warns() {
+    let dir = scratch("p0-warning");
+    let scene = file("ok_estimator.json");
+    let out = dir.join("o.exr");
+    let warned = |flags: &[&'static str]| {
+        let o = nppp(render_args(&scene, &out, None, flags));
+        assert_ok("render", &o);
+        stderr(&o)
+            .lines()
+            .any(|l| l.starts_with("warning: P = 0: camera rays enter the estimators"))
+    };
+    assert!(warned(&["--estimators", "neural"]), "the scene's P is 0");
+    assert!(!warned(&["--estimators", "neural", "--min-bounces", "1"]));
+    assert!(!warned(&["--estimators", "oracle"]));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// An estimator whose exits are nonsense (the corpus' random decoder) has
 /// most of its exits clamped: the render warns and says what to do.
 #[test]

@@ -401,8 +401,8 @@ impl AtomicFile {
             sync_parent(&self.path);
             Ok(())
         })();
-        let kept = !replace
-            && matches!(&result, Err(e) if e.kind() == io::ErrorKind::AlreadyExists);
+        let kept =
+            !replace && matches!(&result, Err(e) if e.kind() == io::ErrorKind::AlreadyExists);
         if !kept {
             if result.is_err() {
                 let _ = std::fs::remove_file(&self.tmp);

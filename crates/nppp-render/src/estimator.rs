@@ -918,7 +918,9 @@ impl Estimators {
                                 baked.meta.mesh_hash != mesh_hash,
                                 baked.meta.material_hash != material_hash,
                             ) {
-                                (true, true) => "the mesh's triangles and the material's parameters differ",
+                                (true, true) => {
+                                    "the mesh's triangles and the material's parameters differ"
+                                }
                                 (true, false) => "the mesh's triangles differ",
                                 _ => "the material's parameters differ",
                             },
