@@ -16,7 +16,7 @@
 use crate::Mesh;
 use glam::Vec3;
 
-/// The OBJ statements (Wavefront's specification, appendix B1) that say
+/// The OBJ statements (Wavefront's specification of the format) that say
 /// nothing about a single-material triangle mesh and are skipped; any other
 /// statement but `v`, `vn`, `vt` and `f` is an error.
 const SKIPPED_STATEMENTS: &[&str] = &[
