@@ -529,8 +529,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
              with --min-bounces / --entry-nee to set them"
         );
     }
+    let confirms = a.auto_confirm
+        && u64::from(scene.camera.width) * u64::from(scene.camera.height)
+            <= nppp_render::auto::PilotOptions::default().confirm_max_pixels;
     let pixel_bytes = nppp_render::scene_data::RENDER_BYTES_PER_PIXEL
-        + if a.auto_confirm {
+        + if confirms {
             nppp_render::scene_data::AUTO_CONFIRM_BYTES_PER_PIXEL
         } else {
             0

@@ -1,6 +1,6 @@
 //! The film: per-pixel sums of radiance samples, kept exactly.
 //!
-//! Each sample's f32 radiance is added to a 256-bit fixed-point integer
+//! Each sample's f32 radiance is added to a 320-bit fixed-point integer
 //! ([`ExactSum`]), so a pixel's sum does not depend on the order in which its
 //! samples were added or on how they were grouped. That is what lets a render
 //! split by sample range over machines (`nppp render --shard`) merge into the
@@ -9,7 +9,7 @@
 //!
 //! No crate offers a fixed-size, order-independent accumulator for f32
 //! (the superaccumulators, e.g. `xsum`, are f64-wide and several hundred bytes
-//! per value); this one is 32 bytes and a few integer additions per sample.
+//! per value); this one is 40 bytes and a few integer additions per sample.
 
 use glam::Vec3;
 

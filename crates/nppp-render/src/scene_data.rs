@@ -26,9 +26,10 @@ pub const RENDER_BYTES_PER_TRIANGLE: u64 = 400;
 /// limit it fits in.)
 pub const RENDER_BYTES_PER_PIXEL: u64 = 48;
 /// What `--estimators auto --auto-confirm` holds per pixel beyond
-/// [`RENDER_BYTES_PER_PIXEL`]: the confirmation pass's film of exact sums
-/// at the image's resolution, and its two halves' images.
-pub const AUTO_CONFIRM_BYTES_PER_PIXEL: u64 = crate::render_part::PART_BYTES_PER_PIXEL + 2 * 12;
+/// [`RENDER_BYTES_PER_PIXEL`] where its confirmation pass runs (images up
+/// to `PilotOptions::confirm_max_pixels`): two films of exact sums at the
+/// image's resolution, and its two halves' images.
+pub const AUTO_CONFIRM_BYTES_PER_PIXEL: u64 = 2 * crate::render_part::PART_BYTES_PER_PIXEL + 2 * 12;
 /// Memory a render holds per instance: its transforms and bounds, its
 /// share of the TLAS, and the per-instance tables of shading, lights and
 /// estimators. An upper bound: the peak resident memory of `nppp render`
@@ -390,10 +391,10 @@ mod tests {
             msg.contains("130.34 KiB") && msg.contains("of memory available"),
             "{msg}"
         );
-        // --auto-confirm's film of exact sums: 152 bytes a pixel more.
+        // --auto-confirm's two films of exact sums: 280 bytes a pixel more.
         let confirm = px + AUTO_CONFIRM_BYTES_PER_PIXEL;
-        assert_eq!(render_memory_problem_within(&scene, confirm, 143_200), None);
-        assert!(render_memory_problem_within(&scene, confirm, 143_199).is_some());
+        assert_eq!(render_memory_problem_within(&scene, confirm, 151_392), None);
+        assert!(render_memory_problem_within(&scene, confirm, 151_391).is_some());
         assert_eq!(render_memory_problem(&scene, px), None);
     }
 }

@@ -257,7 +257,7 @@ pub struct PilotOptions {
     /// image's, so a near tie costs nothing whichever way it goes.
     pub confirm_margin: f64,
     /// Largest image (pixels) the confirmation pass runs for: it holds two
-    /// films of 104 bytes per pixel (218 MB at 1 Mpx). Larger images have
+    /// films of 128 bytes per pixel (268 MB at 1 Mpx). Larger images have
     /// larger pilots.
     pub confirm_max_pixels: u64,
 }
