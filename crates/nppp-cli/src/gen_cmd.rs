@@ -163,10 +163,6 @@ pub fn run(a: &GenArgs) -> Result<()> {
     let t0 = Instant::now();
     let (obj, inputs) = load_object(a)?;
     let build = t0.elapsed().as_secs_f64();
-    let inputs: Vec<(&str, &Path)> = inputs
-        .iter()
-        .map(|(w, p)| (w.as_str(), p.as_path()))
-        .collect();
     nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
     // After that check, whose message says more when --out is an input.
     crate::keep_existing_data(&a.out, a.overwrite, "gen")?;

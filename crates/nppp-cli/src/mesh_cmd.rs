@@ -29,10 +29,6 @@ pub fn run(a: &MeshArgs) -> Result<()> {
     // Nor may it replace any file the scene reads: the scene itself, a
     // mesh's OBJ (the one exported or another), an estimator.
     let inputs = scene.input_files();
-    let inputs: Vec<(&str, &std::path::Path)> = inputs
-        .iter()
-        .map(|(w, p)| (w.as_str(), p.as_path()))
-        .collect();
     nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
     let Some(i) = scene.mesh_names.iter().position(|n| *n == a.mesh) else {
         anyhow::bail!(

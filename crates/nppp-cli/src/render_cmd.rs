@@ -267,10 +267,6 @@ fn check_outputs(a: &RenderArgs, scene: &nppp_scene::Scene) -> Result<()> {
     if let Some(r) = &a.reference {
         inputs.push(("the --reference image".to_string(), r.clone()));
     }
-    let inputs: Vec<(&str, &Path)> = inputs
-        .iter()
-        .map(|(w, p)| (w.as_str(), p.as_path()))
-        .collect();
     nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
     if let Some(p) = &a.png {
         nppp_files::ensure_not_input("--png", p, &inputs).map_err(anyhow::Error::msg)?;

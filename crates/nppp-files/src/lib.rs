@@ -669,17 +669,19 @@ pub fn is_inside(path: &Path, dir: &Path) -> bool {
 }
 
 /// Refuses an output that names one of the command's inputs. `inputs` are
-/// (what the input is, e.g. "--data (the training data)", its path).
-pub fn ensure_not_input(
+/// (what the input is, e.g. "--data (the training data)", its path), as
+/// borrowed or owned strings and paths (`Scene::input_files` as it is).
+pub fn ensure_not_input<S: AsRef<str>, P: AsRef<Path>>(
     out_flag: &str,
     out: &Path,
-    inputs: &[(&str, &Path)],
+    inputs: &[(S, P)],
 ) -> Result<(), String> {
     for (what, input) in inputs {
-        if same_file(out, input) {
+        if same_file(out, input.as_ref()) {
             return Err(format!(
-                "{out_flag} {} is {what}: writing it would destroy an input. Choose another {out_flag}",
-                out.display()
+                "{out_flag} {} is {}: writing it would destroy an input. Choose another {out_flag}",
+                out.display(),
+                what.as_ref()
             ));
         }
     }

@@ -452,8 +452,9 @@ const SURFACE_VERTEX_LIFT: f32 = 0.01;
 /// as the renderer uses it: in mesh space, on the real surface (lifted by
 /// `SURFACE_VERTEX_LIFT`) where `on_surface` finds a point there
 /// (mesh-space point, geometric and shading normals, from the predicted
-/// mesh-space position) that faces as the prediction does (its winding normal on the predicted normal's side,
-/// and the path arriving on the same side of it: a point of the other side
+/// mesh-space position) that faces as the prediction does (its winding
+/// normal on the predicted normal's side, and the path arriving on the
+/// same side of it: a point of the other side
 /// of a thin part is not where the path scattered), else moved off the
 /// surface by `NETWORK_VERTEX_OFFSET`; no light sample when it carries no
 /// throughput or lies past the `budget` of bounces left; the light at the

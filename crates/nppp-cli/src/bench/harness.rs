@@ -178,10 +178,6 @@ fn check_outputs_spare_inputs(
     paths: &[PathBuf],
     inputs: &[(String, PathBuf)],
 ) -> Result<()> {
-    let inputs: Vec<(&str, &Path)> = inputs
-        .iter()
-        .map(|(w, p)| (w.as_str(), p.as_path()))
-        .collect();
     let mut outputs: Vec<PathBuf> = ["results", "results.partial"]
         .iter()
         .flat_map(|s| ["md", "csv"].map(|e| out.join(format!("{s}.{e}"))))
@@ -202,7 +198,7 @@ fn check_outputs_spare_inputs(
         }
     }
     for o in &outputs {
-        nppp_files::ensure_not_input("--out", o, &inputs).map_err(anyhow::Error::msg)?;
+        nppp_files::ensure_not_input("--out", o, inputs).map_err(anyhow::Error::msg)?;
     }
     Ok(())
 }
