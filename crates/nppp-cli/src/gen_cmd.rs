@@ -167,7 +167,7 @@ pub fn run(a: &GenArgs) -> Result<()> {
     // After that check, whose message says more when --out is an input.
     crate::keep_existing_data(&a.out, a.overwrite, "gen")?;
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir)
+        nppp_files::create_output_dir(dir)
             .with_context(|| format!("--out {}: cannot create its folder", a.out.display()))?;
     }
     let max_internal_bounces = a

@@ -119,6 +119,9 @@ fn main() {
     unsafe { pin_pool_size(cli.command.threads()) };
     if let Err(e) = run(cli) {
         nppp_files::note!("error: {e:#}");
+        // Output folders this run made and left empty (it failed before
+        // writing into them).
+        nppp_files::remove_new_empty_dirs();
         std::process::exit(1);
     }
 }

@@ -539,6 +539,11 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     }
     let mut rs = RenderScene::with_estimators(&scene, mode, settings.estimator_min_bounces)
         .with_context(|| a.scene.display().to_string())?;
+    if mode != EstimatorMode::Off
+        && let Some(line) = nppp_render::estimator::unused_on_emitters(&scene)
+    {
+        nppp_files::note!("warning: {}: {line}", a.scene.display());
+    }
     for line in nppp_render::estimator_overlap::describe_all(&rs.obstructed, &scene) {
         nppp_files::note!("warning: {}: {line}", a.scene.display());
     }

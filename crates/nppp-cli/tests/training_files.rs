@@ -369,7 +369,10 @@ fn gen_and_merge_keep_existing_data_unless_told_to_overwrite() {
 fn an_interrupted_gen_leaves_no_temporary_file() {
     use std::process::Stdio;
     let dir = scratch("gen-interrupt");
-    let out = dir.join("x.nppd");
+    // In folders gen makes: they go with the temporary file (they were
+    // left behind, empty).
+    let made = dir.join("new/deeper");
+    let out = made.join("x.nppd");
     for signal in ["INT", "TERM", "XCPU", "USR1"] {
         let child = Command::new(env!("CARGO_BIN_EXE_nppp"))
             .args(["gen", "--mesh", "builtin", "--material", "white", "--quiet"])
@@ -380,14 +383,15 @@ fn an_interrupted_gen_leaves_no_temporary_file() {
             .spawn()
             .unwrap();
         // Wait until the temporary file exists: tracing is under way.
-        let listing = || -> Vec<String> {
-            std::fs::read_dir(&dir)
-                .unwrap()
+        let listing = |d: &Path| -> Vec<String> {
+            std::fs::read_dir(d)
+                .into_iter()
+                .flatten()
                 .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
                 .collect()
         };
         let t0 = std::time::Instant::now();
-        while !listing().iter().any(|n| n.ends_with(".tmp")) {
+        while !listing(&made).iter().any(|n| n.ends_with(".tmp")) {
             assert!(t0.elapsed().as_secs() < 120, "no temporary file appeared");
             std::thread::sleep(std::time::Duration::from_millis(50));
         }
@@ -401,7 +405,11 @@ fn an_interrupted_gen_leaves_no_temporary_file() {
             o.status
         );
         assert!(err.contains("interrupted"), "SIG{signal}:\n{err}");
-        assert!(listing().is_empty(), "SIG{signal} left {:?}", listing());
+        assert!(
+            listing(&dir).is_empty(),
+            "SIG{signal} left {:?}",
+            listing(&dir)
+        );
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -10,7 +10,9 @@
 //!   by a signal removes every one still open ([`remove_pending_temp_files`]),
 //!   with every folder still being assembled ([`create_tracked_dir`],
 //!   [`track_pending_dir`], [`rename_dir_into_place`]: a checkpoint's
-//!   `checkpoint.tmp/`, a fresh model folder before its first checkpoint).
+//!   `checkpoint.tmp/`, a fresh model folder before its first checkpoint)
+//!   and every output folder it made that is still empty
+//!   ([`create_output_dir`], [`remove_new_empty_dirs`]).
 //! - [`ensure_not_input`]: an output path that names one of the command's
 //!   inputs (the same file, under any spelling or hard link) is refused
 //!   before any work, so a slip of the flags cannot overwrite the training
@@ -197,10 +199,61 @@ pub fn rename_dir_into_place(tmp: &Path, path: &Path, settled: &[&Path]) -> io::
     Ok(())
 }
 
+/// Folders this process created to hold its outputs, outermost first:
+/// [`remove_pending_temp_files`] and [`remove_new_empty_dirs`] remove those
+/// still empty (a `gen --out new/d.nppd` or a `bench` interrupted before its
+/// first file left `new/` or `--out/<scene>/` behind, empty).
+static NEW_DIRS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+fn new_dirs() -> MutexGuard<'static, Vec<PathBuf>> {
+    NEW_DIRS.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Creates folder `dir` and its missing parents for outputs, remembering
+/// the folders it made so that a run that ends before writing into them
+/// (a signal, an error) can remove them again ([`remove_new_empty_dirs`]).
+/// Folders that existed are never removed; a folder that holds anything
+/// when the run ends is kept.
+pub fn create_output_dir(dir: &Path) -> io::Result<()> {
+    if dir.as_os_str().is_empty() || dir.is_dir() {
+        return Ok(());
+    }
+    // The missing folders, innermost first.
+    let missing: Vec<&Path> = dir
+        .ancestors()
+        .filter(|d| !d.as_os_str().is_empty())
+        .take_while(|d| std::fs::symlink_metadata(d).is_err())
+        .collect();
+    let mut list = new_dirs();
+    for d in missing.into_iter().rev() {
+        match std::fs::create_dir(d) {
+            Ok(()) => list.push(d.to_path_buf()),
+            // Made by another process in between: not ours to remove.
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists && d.is_dir() => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
+}
+
+/// Removes the folders [`create_output_dir`] made that are still empty,
+/// innermost first; for a run that ends without its outputs.
+pub fn remove_new_empty_dirs() {
+    remove_empty(&mut new_dirs());
+}
+
+fn remove_empty(list: &mut Vec<PathBuf>) {
+    for dir in list.drain(..).rev() {
+        // Fails, as it should, on a folder that holds anything.
+        let _ = std::fs::remove_dir(&dir);
+    }
+}
+
 /// Deletes the temporary file of every write still in progress and every
-/// folder still being assembled; for a signal handler about to end the
-/// process (the targets keep their old contents, as after a kill). Returns
-/// the outputs already put in place before it ran.
+/// folder still being assembled, then the output folders this run made
+/// that are left empty; for a signal handler about to end the process (the
+/// targets keep their old contents, as after a kill). Returns the outputs
+/// already put in place before it ran.
 pub fn remove_pending_temp_files() -> Vec<PathBuf> {
     let mut list = pending();
     for tmp in list.drain(..) {
@@ -223,9 +276,13 @@ pub fn remove_pending_temp_files() -> Vec<PathBuf> {
             }
         }
     }
-    // Held until the process exits: no rename completes after this.
+    let mut made = new_dirs();
+    remove_empty(&mut made);
+    // Held until the process exits: no rename completes after this, and
+    // no output folder is made.
     std::mem::forget(list);
     std::mem::forget(dirs);
+    std::mem::forget(made);
     WRITTEN.lock().unwrap_or_else(|e| e.into_inner()).clone()
 }
 
@@ -313,11 +370,13 @@ pub fn temp_path(path: &Path) -> PathBuf {
     path.with_file_name(name)
 }
 
-/// Creates the folder that will hold `path`, if it has one and it is missing.
+/// Creates the folder that will hold `path`, if it has one and it is
+/// missing ([`create_output_dir`]: removed again if the run ends before
+/// anything is written into it).
 pub fn create_parent(path: &Path) -> io::Result<()> {
     match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => std::fs::create_dir_all(d),
-        _ => Ok(()),
+        Some(d) => create_output_dir(d),
+        None => Ok(()),
     }
 }
 
@@ -1001,6 +1060,31 @@ mod tests {
         // Nothing else: no temporary file left.
         assert_eq!(std::fs::read_dir(&d).unwrap().count(), 2);
         assert!(pending().iter().all(|t| !t.starts_with(&*d)));
+    }
+
+    /// Output folders a run made are removed when it ends without writing
+    /// into them; folders that hold a file, and folders that were there
+    /// before, stay.
+    #[test]
+    fn only_new_empty_output_folders_are_removed() {
+        let d = scratch("new-dirs");
+        create_output_dir(&d.join("a/b/c")).unwrap();
+        create_output_dir(&d.join("a/kept")).unwrap();
+        std::fs::write(d.join("a/kept/out.exr"), b"x").unwrap();
+        create_parent(&d.join("e/f.nppd")).unwrap();
+        // Already there: nothing to remember.
+        create_output_dir(&d).unwrap();
+        assert!(d.join("a/b/c").is_dir() && d.join("e").is_dir());
+        remove_new_empty_dirs();
+        assert!(!d.join("a/b").exists());
+        assert!(!d.join("e").exists());
+        assert_eq!(std::fs::read(d.join("a/kept/out.exr")).unwrap(), b"x");
+        assert!(d.is_dir());
+        // A folder made by a later run of the function, after the first
+        // clean-up, is that run's.
+        create_output_dir(&d.join("g")).unwrap();
+        remove_new_empty_dirs();
+        assert!(!d.join("g").exists() && d.is_dir());
     }
 
     #[test]

@@ -468,7 +468,11 @@ pub fn checkpoint_read_lock(dir: &Path) -> Result<Option<fs::File>> {
 /// is the OS's (`flock`), so a killed run never leaves a stale one.
 pub fn lock_model_dir(out: &Path) -> Result<ModelDirLock> {
     let created = !out.exists();
-    fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    // Its parents as output folders: removed again when a run that
+    // created them ends before its first checkpoint.
+    nppp_files::create_parent(out)
+        .and_then(|()| fs::create_dir_all(out))
+        .with_context(|| format!("creating {}", out.display()))?;
     let p = out.join(files::LOCK);
     let f = fs::OpenOptions::new()
         .create(true)

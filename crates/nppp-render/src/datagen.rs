@@ -77,6 +77,12 @@ pub enum GenError {
         index: usize,
         count: usize,
     },
+    #[error(
+        "material \"{0}\" is an emitter: it reflects nothing, so a path that reaches it ends \
+         there and there is nothing for an estimator to learn (the renderer samples a lamp's \
+         light directly and leaves an estimator on it unused)"
+    )]
+    Emitter(String),
     #[error("{0}")]
     Config(String),
     #[error(transparent)]
@@ -112,6 +118,9 @@ impl GenObject {
     ) -> Result<Self, GenError> {
         if mesh.triangles.is_empty() {
             return Err(GenError::EmptyMesh(mesh_name.to_string()));
+        }
+        if matches!(material, Material::Emitter { .. }) {
+            return Err(GenError::Emitter(material_name.to_string()));
         }
         let geo_normals = mesh
             .triangles

@@ -846,6 +846,46 @@ pub enum EstimatorLoadError {
     },
 }
 
+/// Whether instance `ii` is a lamp. A path that reaches an emitter ends
+/// there, so an estimator has nothing to skip; and the light a lamp's
+/// estimator would return is light the vertex before the entry has already
+/// sampled, which the exit rule adds without a MIS weight: an oracle on a
+/// lamp over a floor rendered 6% bright. Such an instance is traced for
+/// real, and the renderer says so ([`unused_on_emitters`]).
+fn on_emitter(scene: &nppp_scene::Scene, ii: usize) -> bool {
+    let inst = &scene.instances[ii];
+    inst.estimator.is_some()
+        && matches!(
+            scene.materials[inst.material],
+            nppp_scene::Material::Emitter { .. }
+        )
+}
+
+/// What the renderer tells the user about estimators named on emitter
+/// instances, which it leaves unused (see [`on_emitter`]): one line naming
+/// the first few, empty when there are none.
+pub fn unused_on_emitters(scene: &nppp_scene::Scene) -> Option<String> {
+    const NAMED: usize = 3;
+    let found: Vec<usize> = (0..scene.instances.len())
+        .filter(|&i| on_emitter(scene, i))
+        .collect();
+    let first = *found.first()?;
+    let mut names: Vec<String> = found
+        .iter()
+        .take(NAMED)
+        .map(|i| format!("instances[{i}].estimator"))
+        .collect();
+    if found.len() > NAMED {
+        names.push(format!("{} more", found.len() - NAMED));
+    }
+    Some(format!(
+        "{} not used: the material \"{}\" is an emitter, which ends every path that reaches it \
+         (nothing to skip) and whose light is sampled directly; the instance is traced for real",
+        names.join(", ") + if found.len() > 1 { " are" } else { " is" },
+        scene.material_names[scene.instances[first].material]
+    ))
+}
+
 /// Internal bounce cap of the oracle. Each walk also stops where the path
 /// runs out of bounces (M minus its depth: whatever happens later is cut by
 /// M anyway), so the oracle is the real object at every M up to this,
@@ -874,6 +914,10 @@ impl Estimators {
             let Some(path) = &inst.estimator else {
                 continue;
             };
+            if on_emitter(scene, ii) {
+                // Traced for real: see `unused_on_emitters`.
+                continue;
+            }
             let key = (path.clone(), inst.mesh, inst.material);
             if let Some(&e) = by_key.get(&key) {
                 per_instance[ii] = Some(e);

@@ -697,6 +697,22 @@ fn bad_input_is_an_error_not_a_panic() {
         e.to_string().contains("\"nothing\" has no triangles"),
         "{e}"
     );
+    // A lamp ends every path that reaches it: nothing to learn.
+    let ball = icosphere_mesh(Vec3::ZERO, 1.0, 1);
+    let e = GenObject::new(
+        "ball",
+        &ball,
+        "lamp",
+        Material::Emitter {
+            radiance: Vec3::ONE,
+        },
+    )
+    .err()
+    .unwrap();
+    assert!(
+        e.to_string().contains("material \"lamp\" is an emitter"),
+        "{e}"
+    );
     // A degenerate pair (both points equal) has no ray; input_ray never returns one.
     assert!(SpherePair([0.3, 0.4, 0.3, 0.4]).to_ray().is_none());
     for i in 0..1000 {

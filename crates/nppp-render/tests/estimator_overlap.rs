@@ -195,6 +195,39 @@ fn a_released_instance_renders_as_plain_path_tracing_does() {
     assert_eq!(img.pixels, pt.pixels);
 }
 
+/// An estimator named on a lamp is left unused: a path that reaches a lamp
+/// ends there, and the light the estimator would return is what the
+/// vertex before the entry has already sampled (an oracle on a lamp over a
+/// floor rendered 6% bright). Neural mode does not read the file.
+#[test]
+fn an_estimator_on_a_lamp_is_not_used() {
+    let floor =
+        r#"{"quad": [[-50, -1.01, -50], [-50, -1.01, 50], [50, -1.01, 50], [50, -1.01, -50]]}"#;
+    let json = scene(BALL, LAMP, floor, WHITE);
+    let scene = scene_from_str(&json);
+    let note = nppp_render::estimator::unused_on_emitters(&scene).expect("a note");
+    assert!(
+        note.contains("instances[0].estimator is not used") && note.contains("\"object\""),
+        "{note}"
+    );
+    for mode in [EstimatorMode::Oracle, EstimatorMode::Neural] {
+        let rs = RenderScene::with_estimators(&scene, mode, 0).unwrap();
+        assert!(rs.estimators.is_none(), "{mode:?}: a plain render");
+        let opts = nppp_render::render::RenderOptions {
+            spp: 16,
+            max_bounces: 3,
+            seed: 5,
+            progress: false,
+        };
+        let (img, _) = nppp_render::render::render(&rs, &opts);
+        let pt = render_str(&json, 16, 3, 5);
+        assert_eq!(img.pixels, pt.pixels, "{mode:?}");
+    }
+    // A lamp without an estimator, or a diffuse object with one: no note.
+    let diffuse = scene_from_str(&placed(BALL, WHITE, "{}", floor, WHITE));
+    assert_eq!(nppp_render::estimator::unused_on_emitters(&diffuse), None);
+}
+
 proptest::proptest! {
     #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
 

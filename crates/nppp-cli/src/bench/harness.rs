@@ -105,7 +105,8 @@ pub(crate) fn run(a: &BenchArgs) -> Result<()> {
         inputs.extend(scene.input_files());
     }
     check_outputs_spare_inputs(&a.out, &paths, &inputs)?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    nppp_files::create_output_dir(&a.out)
+        .with_context(|| format!("creating {}", a.out.display()))?;
     let machine = Machine::probe();
     nppp_files::note!(
         "nppp bench ({}): {} scene(s), spp {:?}, reference {} spp, {} seed(s), resolution x{}, {} threads",
@@ -270,7 +271,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
     let scene = load_for_bench(path, plan)?;
     let hash = scene_hash(path, &scene)?;
     // Only once the scene is known good: a bad one left an empty folder.
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    nppp_files::create_output_dir(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let (width, height) = (scene.camera.width, scene.camera.height);
     let m = a.max_bounces.unwrap_or(scene.render.max_bounces);
 
@@ -360,6 +361,9 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
             ),
         ));
     } else {
+        if let Some(line) = nppp_render::estimator::unused_on_emitters(&scene) {
+            nppp_files::note!("[{name}] warning: {line}");
+        }
         match Estimators::load(&scene, EstimatorMode::Neural, 0) {
             Ok(Some(mut e)) => {
                 let found = rs_est
@@ -373,7 +377,7 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
                 if !e.any_in_use() {
                     skipped.push((
                         "NPPP (all P)".into(),
-                        "skipped: every estimator instance is obstructed (see the warnings)".into(),
+                        "skipped: every estimator instance is obstructed or a lamp (see the warnings)".into(),
                     ));
                 } else {
                     configs.extend(ps.iter().map(|&p| Config {
@@ -420,7 +424,8 @@ fn bench_scene(a: &BenchArgs, plan: &Plan, path: &Path) -> Result<SceneResult> {
             if !e.any_in_use() {
                 skipped.push((
                     "oracle (all P)".into(),
-                    "skipped: every estimator instance is obstructed (see the warnings)".into(),
+                    "skipped: every estimator instance is obstructed or a lamp (see the warnings)"
+                        .into(),
                 ));
                 oracle = None;
             }

@@ -91,7 +91,7 @@ pub(super) fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
     }
     ensure!(!scenes.is_empty(), "{}: no rows", csv.display());
     crate::plot::register_font().map_err(|e| anyhow::anyhow!(e))?;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    nppp_files::create_output_dir(out).with_context(|| format!("creating {}", out.display()))?;
     for (name, ((w, h), configs)) in &scenes {
         let mmax = configs
             .values()
