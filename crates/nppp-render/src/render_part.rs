@@ -468,9 +468,33 @@ pub fn merge_parts(paths: &[PathBuf]) -> Result<MergedRender, RenderPartError> {
             )));
         }
     }
+    let film = add_films(paths, &headers)?;
+    let mut header = first.clone();
+    header.samples = [0, first.spp];
+    header.seconds = headers.iter().map(|h| h.seconds).sum();
+    Ok(MergedRender { header, film })
+}
+
+/// The sum of the films of `paths`, each of which must still hold the
+/// header `headers` checked.
+fn add_films(
+    paths: &[PathBuf],
+    headers: &[RenderPartHeader],
+) -> Result<Vec<PixelSum>, RenderPartError> {
+    let first = &headers[0];
     let mut film: Vec<PixelSum> = Vec::new();
-    for p in paths {
-        let (_, f) = read_part(p)?;
+    for (p, checked) in paths.iter().zip(headers) {
+        let (h, f) = read_part(p)?;
+        // The file read now must be the one checked above: a part replaced
+        // in between (a shard job run again) was merged unchecked, and one
+        // of a smaller image filled only the top rows.
+        if &h != checked || f.len() != first.width as usize * first.height as usize {
+            return Err(RenderPartError::Merge(format!(
+                "{} changed while merge ran (another process wrote it); run merge again once \
+                 the parts are final",
+                p.display()
+            )));
+        }
         if film.is_empty() {
             film = f;
         } else {
@@ -479,10 +503,7 @@ pub fn merge_parts(paths: &[PathBuf]) -> Result<MergedRender, RenderPartError> {
             }
         }
     }
-    let mut header = first.clone();
-    header.samples = [0, first.spp];
-    header.seconds = headers.iter().map(|h| h.seconds).sum();
-    Ok(MergedRender { header, film })
+    Ok(film)
 }
 
 /// The samples of shard `index` of `count` over `0..spp`: contiguous ranges
@@ -564,6 +585,40 @@ mod tests {
         std::fs::write(&path, &bytes).unwrap();
         let err = read_part(&path).unwrap_err().to_string();
         assert!(err.contains("after the end marker"), "{err}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+    /// A part replaced between merge's check of the headers and its
+    /// reading of the films (a shard job run again) is refused, not merged
+    /// unchecked: a smaller image's part filled only the top rows.
+    #[test]
+    fn a_part_replaced_after_its_check_is_refused() {
+        let dir = std::env::temp_dir().join(format!("nppp-part-swap-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (a, b) = (dir.join("a.nppr"), dir.join("b.nppr"));
+        // Two samples a pixel each, as `film_of` makes.
+        let mut first = header();
+        first.spp = 4;
+        let mut second = first.clone();
+        second.samples = [2, 4];
+        write_part(&a, &first, &film_of([1.0, 0.0])).unwrap();
+        write_part(&b, &second, &film_of([2.0, 0.0])).unwrap();
+        let paths = [a.clone(), b.clone()];
+        assert!(merge_parts(&paths).is_ok());
+        let checked = [first.clone(), second.clone()];
+        assert!(add_films(&paths, &checked).is_ok());
+        // b rewritten after the check: another seed, or a smaller image.
+        let mut reseeded = second.clone();
+        reseeded.seed = 9;
+        let mut small = second.clone();
+        small.width = 1;
+        for (h, film) in [
+            (reseeded, film_of([2.0, 0.0])),
+            (small, film_of([2.0, 0.0])[..1].to_vec()),
+        ] {
+            write_part(&b, &h, &film).unwrap();
+            let err = add_films(&paths, &checked).unwrap_err().to_string();
+            assert!(err.contains("b.nppr changed while merge ran"), "{err}");
+        }
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
