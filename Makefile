@@ -143,7 +143,7 @@ bench: build
 # procedural knot is exported to OBJ for Mitsuba first. README "Speed".
 speed: build
 	mkdir -p $(OUT)
-	$(NPPP) mesh --scene $(OBJECT_SCENE) --mesh knot --out $(OUT)/knot.obj
+	$(NPPP) mesh --scene $(OBJECT_SCENE) --mesh knot --out $(OUT)/knot.obj --overwrite
 	$(MAKE) mitsuba-speed SCENE=$(OBJECT_SCENE) THREADS=$(or $(THREADS),2) MESH_OBJ=knot=$(OUT)/knot.obj
 
 clean:

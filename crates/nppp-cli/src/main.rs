@@ -164,17 +164,27 @@ fn most_threads() -> (usize, usize) {
 /// Must run before any thread exists (it sets an environment variable).
 unsafe fn pin_pool_size(threads: Option<&Threads>) {
     const VAR: &str = "RAYON_NUM_THREADS";
+    const OLD_VAR: &str = "RAYON_RS_NUM_CPUS";
     let (most, cores) = most_threads();
     let size = match threads.and_then(|t| t.threads) {
         // Larger: refused by Threads::install before any work.
         Some(t) => (t <= most).then_some(t),
         None => {
-            let asked = std::env::var(VAR)
-                .ok()
-                .and_then(|v| v.trim().parse::<usize>().ok());
-            asked.filter(|&n| n > most).map(|n| {
+            // As rayon reads them: its deprecated RAYON_RS_NUM_CPUS counts
+            // where RAYON_NUM_THREADS is unset or not a number (3000 made
+            // a tiny render take 15 s).
+            let read = |var: &str| {
+                std::env::var(var)
+                    .ok()
+                    .and_then(|v| v.trim().parse::<usize>().ok())
+            };
+            let asked = match read(VAR) {
+                Some(n) => Some((VAR, n)),
+                None => read(OLD_VAR).map(|n| (OLD_VAR, n)),
+            };
+            asked.filter(|&(_, n)| n > most).map(|(var, n)| {
                 nppp_files::note!(
-                    "warning: {VAR}={n}: using {most} threads ({MAX_THREADS_PER_CORE} per \
+                    "warning: {var}={n}: using {most} threads ({MAX_THREADS_PER_CORE} per \
                      core; this machine has {cores})"
                 );
                 most
@@ -367,7 +377,7 @@ fn run(cli: Cli) -> Result<()> {
             print_summary(&r)?;
             // The curves beside the log; a machine without a font still
             // has the CSV and `nppp plot-log`.
-            match plot::plot_training_log(&r.model_dir, None) {
+            match plot::plot_training_log(&r.model_dir, None, false) {
                 Ok(files) => {
                     let names: Vec<String> =
                         files.iter().map(|f| f.display().to_string()).collect();
@@ -387,7 +397,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Mesh(a) => mesh_cmd::run(&a),
         Command::Merge(a) => merge_cmd::run(&a),
         Command::PlotLog(a) => {
-            let files = plot::plot_training_log(&a.log, a.out.as_deref())?;
+            let files = plot::plot_training_log(&a.log, a.out.as_deref(), a.overwrite)?;
             for f in files {
                 print_summary(&f.display())?;
             }

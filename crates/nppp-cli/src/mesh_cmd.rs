@@ -16,6 +16,10 @@ pub struct MeshArgs {
     /// OBJ file to write (object space, counter-clockwise front faces).
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace `--out` if it exists (an OBJ may be a mesh modelled by hand,
+    /// so it is kept otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 pub fn run(a: &MeshArgs) -> Result<()> {
@@ -30,6 +34,12 @@ pub fn run(a: &MeshArgs) -> Result<()> {
     // mesh's OBJ (the one exported or another), an estimator.
     let inputs = scene.input_files();
     nppp_files::ensure_not_input("--out", &a.out, &inputs).map_err(anyhow::Error::msg)?;
+    anyhow::ensure!(
+        a.overwrite || std::fs::symlink_metadata(&a.out).is_err(),
+        "--out {}: exists; an OBJ may be a mesh made by hand, so nppp mesh keeps it: pass \
+         --overwrite to replace it, or name another file",
+        a.out.display()
+    );
     let Some(i) = scene.mesh_names.iter().position(|n| *n == a.mesh) else {
         anyhow::bail!(
             "{}: no mesh named \"{}\" (defined: {})",

@@ -15,6 +15,17 @@ pub fn register_font() -> Result<(), String> {
             .map(PathBuf::from)
             .into_iter()
             .collect();
+        if let Some(p) = candidates.first() {
+            // A named pipe waited for a writer forever, /dev/zero was read
+            // until memory ran out.
+            if let Err(e) = font_file_problem(p) {
+                nppp_files::note!(
+                    "warning: NPPP_FONT={}: {e}; using a system font",
+                    p.display()
+                );
+                candidates.clear();
+            }
+        }
         for p in [
             "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
             "/usr/share/fonts/dejavu/DejaVuSans.ttf",
@@ -27,7 +38,10 @@ pub fn register_font() -> Result<(), String> {
             candidates.push(PathBuf::from(p));
         }
         for p in candidates {
-            if let Ok(bytes) = std::fs::read(&p) {
+            if font_file_problem(&p).is_err() {
+                continue;
+            }
+            if let Ok(bytes) = nppp_files::read_regular(&p) {
                 let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
                 if plotters::style::register_font(
                     "sans-serif",
@@ -45,6 +59,21 @@ pub fn register_font() -> Result<(), String> {
     .clone()
 }
 
+/// Why `path` cannot be a font file: not a regular file, or larger than
+/// any font (fonts are kilobytes to a few megabytes).
+fn font_file_problem(path: &Path) -> Result<(), String> {
+    const MAX_FONT_BYTES: u64 = 64 << 20;
+    nppp_files::check_regular(path).map_err(|e| e.to_string())?;
+    let len = std::fs::metadata(path).map_err(|e| e.to_string())?.len();
+    if len > MAX_FONT_BYTES {
+        return Err(format!(
+            "{} is larger than any font file",
+            nppp_files::format_bytes(len)
+        ));
+    }
+    Ok(())
+}
+
 /// `nppp plot-log`: the training curves of a model directory.
 #[derive(clap::Args)]
 pub struct PlotLogArgs {
@@ -54,6 +83,12 @@ pub struct PlotLogArgs {
     /// the log).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Replace the default plots beside a log that is not in a model
+    /// directory where they exist (files nppp did not name after the log
+    /// may be anyone's, so they are kept otherwise). A model directory's
+    /// plots, and a plot named with `--out`, are replaced as images are.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 /// The columns of a training log, by name; empty cells are `None`.
@@ -290,8 +325,10 @@ where
 
 /// Draws the training curves of `log` (a model directory or its log.csv) to
 /// `out` (`.svg` or `.png`), or to log.svg and log.png beside the log.
-/// Returns the files written.
-pub fn plot_training_log(log: &Path, out: Option<&Path>) -> Result<Vec<PathBuf>> {
+/// Returns the files written. Those default plots replace existing files
+/// only in a model directory (its own plots) or with `overwrite`: beside a
+/// `results.csv` elsewhere, `results.svg` may be anyone's.
+pub fn plot_training_log(log: &Path, out: Option<&Path>, overwrite: bool) -> Result<Vec<PathBuf>> {
     use plotters::prelude::*;
     let csv = if log.is_dir() {
         log.join("log.csv")
@@ -305,6 +342,21 @@ pub fn plot_training_log(log: &Path, out: Option<&Path>) -> Result<Vec<PathBuf>>
         Some(o) => vec![o.to_path_buf()],
         None => vec![csv.with_extension("svg"), csv.with_extension("png")],
     };
+    let in_model_dir = csv
+        .parent()
+        .is_some_and(|d| d.join("train_config.json").is_file() || d.join("checkpoint").is_dir());
+    if out.is_none()
+        && !overwrite
+        && !in_model_dir
+        && let Some(o) = outs.iter().find(|o| std::fs::symlink_metadata(o).is_ok())
+    {
+        bail!(
+            "{} exists, and {} is not in a model directory, so the plot beside it may be \
+             anyone's: pass --overwrite to replace it, or name the plot with --out",
+            o.display(),
+            csv.display()
+        );
+    }
     for o in &outs {
         let ext = o
             .extension()
@@ -368,7 +420,7 @@ mod tests {
         assert_eq!(log.series("heldout_chamfer", 1.0), vec![(200.0, 0.5)]);
         assert!(log.series("missing", 1.0).is_empty());
         if register_font().is_ok() {
-            let out = plot_training_log(&dir, None).unwrap();
+            let out = plot_training_log(&dir, None, false).unwrap();
             for o in out {
                 assert!(
                     std::fs::metadata(&o).unwrap().len() > 1000,
@@ -388,7 +440,19 @@ mod tests {
         let log = TrainingLog::read(&csv).unwrap();
         assert_eq!(log.series("train_loss", 1.0), vec![(200.0, 1.0)]);
         if register_font().is_ok() {
-            assert!(!plot_training_log(&dir, None).unwrap().is_empty());
+            // The plots of the first call are there, and this folder is
+            // not a model directory: kept unless told.
+            let e = plot_training_log(&dir, None, false)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("log.svg exists") && e.contains("--overwrite"),
+                "{e}"
+            );
+            assert!(!plot_training_log(&dir, None, true).unwrap().is_empty());
+            // A model directory's plots are its own.
+            std::fs::write(dir.join("train_config.json"), "{}").unwrap();
+            assert!(!plot_training_log(&dir, None, false).unwrap().is_empty());
         }
         std::fs::write(&csv, "a,b\n1,2\n").unwrap();
         let e = TrainingLog::read(&csv).err().unwrap().to_string();

@@ -878,7 +878,13 @@ fn parse_samples(s: &str) -> Result<std::ops::Range<u32>, String> {
     let num = |t: &str| {
         t.trim()
             .parse::<u32>()
-            .map_err(|_| format!("\"{s}\": \"{t}\" is not a whole number"))
+            .map_err(|_| match t.trim().parse::<u128>() {
+                Ok(_) => format!(
+                    "\"{s}\": {} is too large (samples are numbered below 2^32)",
+                    t.trim()
+                ),
+                Err(_) => format!("\"{s}\": \"{t}\" is not a whole number"),
+            })
     };
     let (a, b) = (num(a)?, num(b)?);
     if a >= b {

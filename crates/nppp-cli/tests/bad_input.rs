@@ -1686,6 +1686,38 @@ fn mesh_export_never_replaces_a_file_the_scene_reads() {
         );
     }
     assert_eq!(names_in(&dir), ["model.obj", "scene.json"]);
+    // An OBJ the scene does not read is kept too, unless --overwrite (it
+    // was replaced without a word).
+    let other = dir.join("other.obj");
+    std::fs::write(&other, user_obj).unwrap();
+    let export = |overwrite: bool| {
+        let mut a: Vec<&OsStr> = vec![
+            "mesh".as_ref(),
+            "--scene".as_ref(),
+            scene_path.as_os_str(),
+            "--mesh".as_ref(),
+            "ball".as_ref(),
+            "--out".as_ref(),
+            other.as_os_str(),
+        ];
+        if overwrite {
+            a.push("--overwrite".as_ref());
+        }
+        nppp(&a)
+    };
+    assert_clean_error(
+        "mesh over other.obj",
+        &export(false),
+        &["--out", "other.obj", "exists", "--overwrite"],
+    );
+    assert_eq!(std::fs::read_to_string(&other).unwrap(), user_obj);
+    let o = export(true);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    assert!(
+        std::fs::read_to_string(&other)
+            .unwrap()
+            .contains("triangles")
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -2256,4 +2288,31 @@ fn a_damaged_cached_bench_reference_is_rendered_again() {
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
     assert!(text(&o).contains("impossible noise floor"), "{}", text(&o));
     assert!(!std::fs::read_to_string(&json).unwrap().contains("-1.0"));
+}
+
+/// The thread-count variables rayon reads (its deprecated
+/// `RAYON_RS_NUM_CPUS` where `RAYON_NUM_THREADS` is unset) are capped at 64
+/// threads a core, with a warning naming the variable: 3000 made a tiny
+/// render take 15 s (the renderer's pool and exr's each started them).
+#[test]
+fn thread_count_variables_are_capped() {
+    let dir = scratch("thread-vars");
+    let out = dir.join("a.exr");
+    for var in ["RAYON_NUM_THREADS", "RAYON_RS_NUM_CPUS"] {
+        // Only this one set, whatever the test's own environment holds.
+        let o = Command::new(env!("CARGO_BIN_EXE_nppp"))
+            .args(["render".as_ref(), file("ok_tiny.json").as_os_str()])
+            .args(["--quiet".as_ref(), "--out".as_ref(), out.as_os_str()])
+            .env_remove("RAYON_NUM_THREADS")
+            .env_remove("RAYON_RS_NUM_CPUS")
+            .env(var, "1000000")
+            .output()
+            .unwrap();
+        let err = text(&o);
+        assert_eq!(o.status.code(), Some(0), "{var}: {err}");
+        assert!(
+            err.contains(&format!("warning: {var}=1000000: using")),
+            "{var}: {err}"
+        );
+    }
 }

@@ -285,7 +285,7 @@ fn shard_flags_are_checked_before_rendering() {
     let part = dir.join("p.nppr");
     // (what, flags, --out, exit status, needles)
     type Case<'a> = (&'a str, Vec<&'a str>, PathBuf, i32, Vec<&'a str>);
-    let cases: [Case; 7] = [
+    let cases: [Case; 8] = [
         (
             "I = K",
             vec!["--shard", "6/6"],
@@ -327,6 +327,13 @@ fn shard_flags_are_checked_before_rendering() {
             part.clone(),
             2,
             vec!["START must be below END"],
+        ),
+        (
+            "samples past 32 bits",
+            vec!["--samples", "0..4294967296"],
+            part.clone(),
+            2,
+            vec!["4294967296 is too large"],
         ),
         (
             "with --png",

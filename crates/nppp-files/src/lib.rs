@@ -224,6 +224,14 @@ pub fn create_output_dir(dir: &Path) -> io::Result<()> {
         .filter(|d| !d.as_os_str().is_empty())
         .take_while(|d| std::fs::symlink_metadata(d).is_err())
         .collect();
+    let there = dir.ancestors().nth(missing.len());
+    if let Some(d) = there.filter(|d| !d.as_os_str().is_empty() && !d.exists()) {
+        // Said plainly: creating under it fails with "File exists".
+        return Err(io::Error::other(format!(
+            "{} is a symbolic link to a missing folder (or a loop of links)",
+            d.display()
+        )));
+    }
     let mut list = new_dirs();
     for d in missing.into_iter().rev() {
         match std::fs::create_dir(d) {
@@ -643,7 +651,12 @@ pub fn check_writable(path: &Path) -> Result<(), String> {
         _ => PathBuf::from("."),
     };
     let mut dir = parent.as_path();
-    while !dir.exists() {
+    // Up to the nearest folder that is there. A link whose target is
+    // missing (or a loop of links) is there but cannot be followed:
+    // `exists()` is false for it, and the folder beside it was probed
+    // instead, so the render ran to its end before the folder could not
+    // be made.
+    while std::fs::symlink_metadata(dir).is_err() {
         match dir.parent() {
             Some(d) if !d.as_os_str().is_empty() => dir = d,
             _ => {
@@ -651,6 +664,13 @@ pub fn check_writable(path: &Path) -> Result<(), String> {
                 break;
             }
         }
+    }
+    if !dir.exists() {
+        return Err(format!(
+            "{} is a symbolic link to a missing folder (or a loop of links), so the file \
+             cannot be created",
+            dir.display()
+        ));
     }
     if !dir.is_dir() {
         return Err(format!(
@@ -1085,6 +1105,26 @@ mod tests {
         create_output_dir(&d.join("g")).unwrap();
         remove_new_empty_dirs();
         assert!(!d.join("g").exists() && d.is_dir());
+    }
+
+    /// An output under a link whose target is missing, or a loop of links,
+    /// is refused before any work, naming the link (a render ran to its
+    /// end, then failed with "File exists").
+    #[cfg(unix)]
+    #[test]
+    fn outputs_under_a_dangling_link_are_refused_up_front() {
+        let d = scratch("dangling");
+        std::os::unix::fs::symlink(d.join("gone"), d.join("dang")).unwrap();
+        std::os::unix::fs::symlink(d.join("loop"), d.join("loop")).unwrap();
+        for link in ["dang", "loop"] {
+            for out in [d.join(link).join("a.exr"), d.join(link).join("x/a.exr")] {
+                let e = check_writable(&out).unwrap_err();
+                assert!(e.contains(link) && e.contains("symbolic link"), "{e}");
+                let e = create_parent(&out).unwrap_err().to_string();
+                assert!(e.contains(link) && e.contains("symbolic link"), "{e}");
+            }
+        }
+        assert!(!d.join("gone").exists());
     }
 
     #[test]

@@ -1193,6 +1193,27 @@ fn zero_length_rotation_axis() {
     );
 }
 
+/// Only the axis' direction matters: one whose squared length leaves
+/// f64's normal range (1e-200 long) is the same rotation as [1, 1, 0]
+/// (it was "zero length", printed with 200 digits).
+#[test]
+fn rotation_axes_of_any_length_give_their_direction() {
+    let rotation = |axis: Value| {
+        let mut v = base();
+        v["instances"][1]["transform"]["rotate"] = json!({"axis": axis, "deg": 30});
+        parse(&v).expect("loads").instances[1].transform.rotation
+    };
+    let unit = rotation(json!([1, 1, 0]));
+    for axis in [
+        json!([1e-200, 1e-200, 0]),
+        json!([3e38, 3e38, 0]),
+        json!([5e-324, 5e-324, 0]),
+    ] {
+        let r = rotation(axis.clone());
+        assert!(r.abs_diff_eq(unit, 1e-7), "{axis}: {r:?} against {unit:?}");
+    }
+}
+
 #[test]
 fn estimator_path_must_not_be_empty() {
     expect_error(

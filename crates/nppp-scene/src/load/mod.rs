@@ -1015,8 +1015,18 @@ impl Cx<'_> {
             let axis = self.vec3_f64(av, &ap)?;
             let (dv, dp) = r.req(self, "deg")?;
             let deg = self.number(dv, &dp)?;
+            // Only its direction matters: an axis whose squared length
+            // leaves f64's normal range (1e-200 long) is divided
+            // by its largest component first; others are used as written.
+            let len2 = axis.length_squared();
+            let m = axis.abs().max_element();
+            let axis = if (len2 < f64::MIN_POSITIVE || !len2.is_finite()) && m > 0.0 {
+                axis / m
+            } else {
+                axis
+            };
             let Some(axis) = axis.try_normalize() else {
-                return Err(self.invalid(&ap, format!("rotation axis {axis} has zero length")));
+                return Err(self.invalid(&ap, "rotation axis [0, 0, 0] has zero length".into()));
             };
             // Double precision so that 90 degrees about an axis gives the
             // exactly rounded quaternion, the same as other implementations.
