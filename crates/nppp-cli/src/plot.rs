@@ -342,9 +342,12 @@ pub fn plot_training_log(log: &Path, out: Option<&Path>, overwrite: bool) -> Res
         Some(o) => vec![o.to_path_buf()],
         None => vec![csv.with_extension("svg"), csv.with_extension("png")],
     };
-    let in_model_dir = csv
-        .parent()
-        .is_some_and(|d| d.join("train_config.json").is_file() || d.join("checkpoint").is_dir());
+    // A model directory, not its checkpoint folder (which holds a
+    // train_config.json of its own, and only what its state.json lists).
+    let in_model_dir = csv.parent().is_some_and(|d| {
+        d.join("checkpoint").is_dir()
+            || (d.join("train_config.json").is_file() && !d.join("state.json").exists())
+    });
     if out.is_none()
         && !overwrite
         && !in_model_dir

@@ -498,6 +498,7 @@ pub fn load_heldout(loaded: &LoadedModel, data: Option<&Path>, quiet: bool) -> R
             loaded.dir.display()
         );
     }
+    check_training_data(loaded, path)?;
     let (header, rays) =
         load_dataset_where(path, quiet, 1.0 / every as f64, |i| is_heldout(i, every))
             .with_context(|| {
@@ -540,6 +541,45 @@ pub fn load_heldout(loaded: &LoadedModel, data: Option<&Path>, quiet: bool) -> R
         .as_ref()
         .filter(|_| header.vertices);
     crate::data::encode_split(rays, header.k as usize, &loaded.meta.transform, vt, true)
+}
+
+/// Refuses data whose held-out rays are not the model's: rays are held out
+/// by their index in the file, so a shard of the training data (numbered
+/// from its own first ray), or a file with other rays or another k, would
+/// score the model on rays it trained on, or fail later without naming a
+/// file. The mesh and material are compared after reading.
+fn check_training_data(loaded: &LoadedModel, path: &Path) -> Result<()> {
+    let Ok(reader) = nppp_estimator::DatasetReader::open(path) else {
+        // Reading it again below says what is wrong with it.
+        return Ok(());
+    };
+    let h = reader.header();
+    let no_eval = "name the file the model was trained on with --data, or bake with --no-eval";
+    if let Some(s) = &h.shard {
+        bail!(
+            "{} is a shard (rays {}..{} of {}) of a data set: its rays are numbered from its \
+             own first one, so its held-out rays are not the ones the model was kept from; \
+             merge the shards (`nppp merge`) and name the merged file, or bake with --no-eval",
+            path.display(),
+            s.first_ray,
+            s.end_ray,
+            s.rays
+        );
+    }
+    let fp = &loaded.state.data;
+    let (rays, hits, k) = (reader.len(), reader.hit_count() as usize, h.k as usize);
+    if (rays, hits, k) != (fp.rays, fp.hits, fp.k) {
+        bail!(
+            "{} holds {rays} rays, {hits} hits, k = {k}; the model was trained on {} rays, {} \
+             hits, k = {} ({}'s checkpoint): its held-out rays would not be the model's; {no_eval}",
+            path.display(),
+            fp.rays,
+            fp.hits,
+            fp.k,
+            loaded.dir.display()
+        );
+    }
+    Ok(())
 }
 
 fn eval_pair(

@@ -98,7 +98,14 @@ fn check_ray(i: usize, r: &RaySample, k: usize) -> Result<()> {
                 && e.throughput.min_element() >= 0.0
                 && e.radiance.min_element() >= 0.0;
             if !ok {
-                bail!("ray {i}, exit {j}: non-finite or negative values ({e:?})");
+                bail!(
+                    "ray {i}, exit {j}: non-finite or negative values (position {}, direction \
+                     {}, throughput {}, radiance {})",
+                    e.position,
+                    e.direction,
+                    e.throughput,
+                    e.radiance
+                );
             }
         }
     }

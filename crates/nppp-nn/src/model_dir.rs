@@ -271,8 +271,8 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
         }
     }
     let tc = dir.join(files::TRAIN_CONFIG);
-    let train_config = TrainConfig::load(&tc)
-        .map_err(|e| anyhow::anyhow!("cannot read {}: {e:?}", tc.display()))?;
+    let train_config =
+        TrainConfig::load(&tc).map_err(|e| anyhow::anyhow!("cannot read {}: {e}", tc.display()))?;
     train_config
         .check_values()
         .with_context(|| format!("{}", tc.display()))?;
@@ -309,6 +309,35 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
     }
     if let Err(what) = meta.dataset.check() {
         bail!("{}: dataset: {what}; {rebuild}", mp.display());
+    }
+    // The two files must describe one model: a resume trained on without
+    // the vertex head's transform, and only bake refused it later.
+    if train_config.model.vertex_head != meta.vertex_transform.is_some() {
+        bail!(
+            "{}: {} a vertex_transform, and {} says the model {} a vertex head: the two \
+             files are from different models; {rebuild}",
+            mp.display(),
+            if meta.vertex_transform.is_some() {
+                "has"
+            } else {
+                "has no"
+            },
+            tc.display(),
+            if train_config.model.vertex_head {
+                "has"
+            } else {
+                "has no"
+            }
+        );
+    }
+    if meta.dataset.k != state.data.k as u32 {
+        bail!(
+            "{}: dataset.k = {}, and the checkpoint's state.json records data with k = {}: \
+             the files are from different runs; {rebuild}",
+            mp.display(),
+            meta.dataset.k,
+            state.data.k
+        );
     }
     let transforms = [
         (
@@ -375,16 +404,44 @@ pub fn load_weights(ckpt: &Checkpoint, device: &Device) -> Result<NpppModel> {
     no_panic(&format!("loading {}", path.display()), || {
         let record =
             burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes))
-                .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))?;
+                .map_err(|e| {
+                anyhow::anyhow!(
+                    "loading {}: {e} (the Adam state is damaged or from another model: resume \
+                     cannot go on from it; retrain with --overwrite)",
+                    path.display()
+                )
+            })?;
         fresh.try_load_record(record).map_err(|e| {
             anyhow::anyhow!(
                 "loading {}: its weights do not fit the network {} describes (the model \
-                 directory was edited or mixed from two runs; retrain it): {e}",
+                 directory was edited or mixed from two runs; retrain it): {}",
                 path.display(),
-                files::TRAIN_CONFIG
+                files::TRAIN_CONFIG,
+                first_mismatch(&e.to_string())
             )
         })
     })
+}
+
+/// The first of Burn's list of tensors that do not fit, in plain words
+/// (`decoder.layers.0.weight: shape mismatch, expected Shape { dims: [20,
+/// 32] } but …`, one per tensor), and how many more there are.
+fn first_mismatch(message: &str) -> String {
+    let plain = message
+        .replace("Shape { dims: ", "")
+        .replace("] }", "]")
+        .replace("Record validation error: Apply errors: ", "");
+    let items: Vec<&str> = plain
+        .trim_matches(|c| c == '[' || c == ']')
+        .split("\", \"")
+        .map(|i| i.trim_matches('"'))
+        .collect();
+    match items.as_slice() {
+        [first, rest @ ..] if !rest.is_empty() => {
+            format!("{first} (and {} more tensors)", rest.len())
+        }
+        _ => plain,
+    }
 }
 
 /// Loads the Adam state of a checked checkpoint into `optim`.
@@ -393,7 +450,13 @@ pub fn load_optimizer(ckpt: &Checkpoint, optim: ModuleOptimizer) -> Result<Modul
     no_panic(&format!("loading {}", path.display()), || {
         optim
             .load(&path)
-            .map_err(|e| anyhow::anyhow!("loading {}: {e:?}", path.display()))
+            .map_err(|e| {
+                anyhow::anyhow!(
+                    "loading {}: {e} (the Adam state is damaged or from another model: resume \
+                     cannot go on from it; retrain with --overwrite)",
+                    path.display()
+                )
+            })
     })
 }
 

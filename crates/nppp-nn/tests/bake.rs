@@ -121,6 +121,53 @@ fn bake_errors_are_clear() {
     o.latent_grid = 200;
     let err = bake(&o).unwrap_err();
     assert!(err.to_string().contains("GiB"), "{err}");
+
+    // Scoring data whose held-out rays are not the model's: the same
+    // object with another k (it failed later naming no file), other rays,
+    // or a shard of the training data (whose rays are numbered from its
+    // own first: bake scored the model on rays it had trained on).
+    o.latent_grid = 8;
+    let write = |name: &str, k: usize, n: usize, shard: bool| {
+        let path = dir.join(name);
+        let mut header = synthetic_header("mirror-ball", k);
+        header.mesh_hash = 0xDEAD_BEEF;
+        header.material_hash = 42;
+        header.max_internal_bounces = 16;
+        if shard {
+            header.shard = Some(nppp_estimator::shard::DatasetShard {
+                first_ray: 0,
+                end_ray: n as u64,
+                rays: 2 * n as u64,
+                chunk_rays: nppp_estimator::WriterOptions::default().chunk_rays,
+                compress: true,
+            });
+        }
+        let mut w = DatasetWriter::create(&path, header).unwrap();
+        for r in (SyntheticObject::Mirror { radius: 0.6 }).rays(n, k, 3) {
+            w.write(&r).unwrap();
+        }
+        w.finish().unwrap();
+        path
+    };
+    for (data, needle) in [
+        (
+            write("k4.nppd", 4, 400, false),
+            "k = 4; the model was trained on",
+        ),
+        (write("more.nppd", 8, 500, false), "holds 500 rays"),
+        (
+            write("shard.nppd", 8, 200, true),
+            "is a shard (rays 0..200 of 400)",
+        ),
+    ] {
+        o.data = Some(data.clone());
+        let err = format!("{:#}", bake(&o).unwrap_err());
+        assert!(
+            err.contains(needle) && err.contains(&data.display().to_string()),
+            "{err}"
+        );
+    }
+    assert!(!dir.join("x.nppp").exists());
 }
 
 /// The vertex head (issue 18): it trains when the data has picked vertices,

@@ -380,6 +380,56 @@ impl Columns {
     }
 }
 
+/// The rules every ray record of a data set keeps, for its header: checked
+/// when it is written and again when it is read (a forged or damaged file
+/// with valid checksums passed NaN vertices into training, which then
+/// "diverged", and negative vertex throughput trained without a word).
+pub(crate) fn check_record(header: &DatasetHeader, rec: &RayRecord) -> Result<(), String> {
+    let want = if rec.hit { header.k as usize } else { 0 };
+    if rec.exits.len() != want {
+        return Err(format!("{} exits for a {} (k = {})", rec.exits.len(), if rec.hit { "hit" } else { "miss" }, header.k));
+    }
+    if !rec.pair.0.iter().all(|x| x.is_finite()) {
+        return Err(format!("sphere pair {:?} is not finite", rec.pair.0));
+    }
+    let want_vertices = if header.vertices { rec.exits.len() } else { 0 };
+    if rec.vertices.len() != want_vertices {
+        return Err(format!(
+            "{} picked vertices for {} exits (the header says the data set {} vertices)",
+            rec.vertices.len(),
+            rec.exits.len(),
+            if header.vertices { "has" } else { "has no" }
+        ));
+    }
+    for (i, v) in rec.vertices.iter().enumerate() {
+        if !(v.position.is_finite() && v.position.abs().max_element() <= 1.0) {
+            return Err(format!("vertex {i}: position {} is not inside the unit sphere's box", v.position));
+        }
+        for (name, d) in [("normal", v.normal), ("direction", v.wo)] {
+            if !(d.is_finite() && d.abs().max_element() > 0.0) {
+                return Err(format!("vertex {i}: {name} {d} is not a finite non-zero vector"));
+            }
+        }
+        if !(v.beta.is_finite() && v.beta.min_element() >= 0.0) {
+            return Err(format!("vertex {i}: throughput {} is not finite and >= 0", v.beta));
+        }
+    }
+    for (i, e) in rec.exits.iter().enumerate() {
+        for (name, v) in [("position", e.position), ("direction", e.direction)] {
+            let l = v.abs().max_element();
+            if !(v.is_finite() && l > 0.0) {
+                return Err(format!("exit {i}: {name} {v} is not a finite non-zero vector"));
+            }
+        }
+        for (name, v) in [("throughput", e.throughput), ("radiance", e.radiance)] {
+            if !(v.is_finite() && v.min_element() >= 0.0) {
+                return Err(format!("exit {i}: {name} {v} is not finite and >= 0"));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Splits a payload back into records. Every column's size is checked
 /// against the payload before any record is allocated, so a damaged count
 /// cannot ask for more memory than the (bounded) payload justifies.
@@ -614,49 +664,7 @@ impl DatasetWriter {
     }
 
     fn check_record(&self, rec: &RayRecord) -> Result<(), String> {
-        let want = if rec.hit { self.header.k as usize } else { 0 };
-        if rec.exits.len() != want {
-            return Err(format!("{} exits for a {} (k = {})", rec.exits.len(), if rec.hit { "hit" } else { "miss" }, self.header.k));
-        }
-        if !rec.pair.0.iter().all(|x| x.is_finite()) {
-            return Err(format!("sphere pair {:?} is not finite", rec.pair.0));
-        }
-        let want_vertices = if self.header.vertices { rec.exits.len() } else { 0 };
-        if rec.vertices.len() != want_vertices {
-            return Err(format!(
-                "{} picked vertices for {} exits (the header says the data set {} vertices)",
-                rec.vertices.len(),
-                rec.exits.len(),
-                if self.header.vertices { "has" } else { "has no" }
-            ));
-        }
-        for (i, v) in rec.vertices.iter().enumerate() {
-            if !(v.position.is_finite() && v.position.abs().max_element() <= 1.0) {
-                return Err(format!("vertex {i}: position {} is not inside the unit sphere's box", v.position));
-            }
-            for (name, d) in [("normal", v.normal), ("direction", v.wo)] {
-                if !(d.is_finite() && d.abs().max_element() > 0.0) {
-                    return Err(format!("vertex {i}: {name} {d} is not a finite non-zero vector"));
-                }
-            }
-            if !(v.beta.is_finite() && v.beta.min_element() >= 0.0) {
-                return Err(format!("vertex {i}: throughput {} is not finite and >= 0", v.beta));
-            }
-        }
-        for (i, e) in rec.exits.iter().enumerate() {
-            for (name, v) in [("position", e.position), ("direction", e.direction)] {
-                let l = v.abs().max_element();
-                if !(v.is_finite() && l > 0.0) {
-                    return Err(format!("exit {i}: {name} {v} is not a finite non-zero vector"));
-                }
-            }
-            for (name, v) in [("throughput", e.throughput), ("radiance", e.radiance)] {
-                if !(v.is_finite() && v.min_element() >= 0.0) {
-                    return Err(format!("exit {i}: {name} {v} is not finite and >= 0"));
-                }
-            }
-        }
-        Ok(())
+        check_record(&self.header, rec)
     }
 
     fn flush_chunk(&mut self) -> Result<(), DatasetError> {
@@ -950,8 +958,13 @@ impl DatasetReader {
             }
             other => return Err(err(format!("unknown payload encoding {other}"))),
         };
-        decode_payload(&raw, c.rays, c.hits, self.header.k, bounce_width(self.header.max_internal_bounces), self.header.vertices)
-            .map_err(err)
+        let records =
+            decode_payload(&raw, c.rays, c.hits, self.header.k, bounce_width(self.header.max_internal_bounces), self.header.vertices)
+                .map_err(err)?;
+        for (j, rec) in records.iter().enumerate() {
+            check_record(&self.header, rec).map_err(|what| err(format!("ray {j} of the chunk: {what}")))?;
+        }
+        Ok(records)
     }
 
     /// Chunk `i` as stored, its header and payload checked (marker, sizes,

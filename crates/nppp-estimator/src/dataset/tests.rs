@@ -423,6 +423,42 @@ fn picked_vertices_round_trip_and_are_checked() {
     let _ = std::fs::remove_dir_all(path2.parent().unwrap());
 }
 
+/// A file whose checksums are right but whose records break the writer's
+/// rules (forged, or written by a broken tool) is refused when read,
+/// naming the chunk and the ray: a NaN vertex or an infinite vertex
+/// throughput reached training, which "diverged" (and told the user to
+/// lower --lr).
+#[test]
+fn records_are_checked_when_read_too() {
+    let mut h = header(8);
+    h.vertices = true;
+    let mut rng = SampleRng::from_seed(12);
+    let mut good = synthetic_record(&mut rng, 8, 1.0);
+    good.vertices = good.exits.iter().map(|_| synthetic_vertex(&mut rng)).collect();
+    // The first vertex of a chunk's vertex column: its position's x in f16
+    // at byte 0, its throughput's x at byte 14 (after the position and the
+    // two octahedral directions). The encoder clamps what it writes, so
+    // the bad values go in as bytes, as a forger would put them.
+    let forge = |name: &str, at: usize, f16_bits: u16| {
+        let path = tmp(name);
+        let mut w = DatasetWriter::create_with(&path, h.clone(), WriterOptions { chunk_rays: 32, compress: false, replace: true }).unwrap();
+        w.cols.push(&good, w.header.max_internal_bounces, w.bounce_width);
+        w.cols.vertices[at..at + 2].copy_from_slice(&f16_bits.to_le_bytes());
+        w.rays += 1;
+        w.hits += 1;
+        w.finish().unwrap();
+        let e = DatasetReader::open(&path).unwrap().read_all().unwrap_err().to_string();
+        let _ = std::fs::remove_dir_all(path.parent().unwrap());
+        e
+    };
+    let e = forge("read-nan-vertex", 0, 0x7E00);
+    assert!(e.contains("ray 0 of the chunk: vertex 0: position"), "{e}");
+    let e = forge("read-inf-beta", 14, 0x7C00);
+    assert!(e.contains("ray 0 of the chunk: vertex 0: throughput"), "{e}");
+    let e = forge("read-negative-beta", 14, 0xBC00);
+    assert!(e.contains("ray 0 of the chunk: vertex 0: throughput"), "{e}");
+}
+
 /// Rewrites a file's version field (and the header checksum that covers it).
 fn with_version(bytes: &[u8], version: u32) -> Vec<u8> {
     let mut b = bytes.to_vec();

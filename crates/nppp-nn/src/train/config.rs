@@ -255,6 +255,28 @@ impl TrainConfig {
                 self.holdout_every
             );
         }
+        // Reached only through an edited file (the flags are checked by
+        // clap): each was accepted and trained to nonsense, or "diverged"
+        // with the advice to lower --lr.
+        for (name, v) in [("beta_1", self.beta_1), ("beta_2", self.beta_2)] {
+            if !(0.0..1.0).contains(&v) {
+                bail!("{name} = {v} must be in [0, 1) (Adam's decay rate)");
+            }
+        }
+        if !(self.epsilon.is_finite() && self.epsilon > 0.0) {
+            bail!("epsilon = {} must be a number > 0", self.epsilon);
+        }
+        for (name, v) in [
+            ("mask_weight", self.mask_weight),
+            ("grad_clip_norm", self.grad_clip_norm),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                bail!("{name} = {v} must be a number >= 0");
+            }
+        }
+        if self.eval_rays == 0 {
+            bail!("eval_rays (--eval-rays) = 0 must be at least 1");
+        }
         Ok(())
     }
 
@@ -387,25 +409,7 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
         kept_hyperparameters!(check_kept);
         cfg
     } else {
-        check_fresh_out(&opts.out)?;
-        if checkpoint_dir(&opts.out).is_some() && !opts.overwrite {
-            bail!(
-                "{} already holds a checkpoint; pass --resume to continue it, --overwrite to \
-                 start afresh, or choose another --out",
-                opts.out.display()
-            );
-        }
-        if let Some(d) = incomplete_checkpoint(&opts.out)
-            && !opts.overwrite
-        {
-            bail!(
-                "{} holds files but no {} (an incomplete or damaged checkpoint, whose weights \
-                 may still be wanted); pass --overwrite to start afresh (they are replaced once \
-                 the new run's first checkpoint is in place), or choose another --out",
-                d.display(),
-                crate::model_dir::files::STATE
-            );
-        }
+        check_fresh_target(opts)?;
         let mut cfg = TrainConfig::new(ModelConfig::new());
         macro_rules! set_given {
             ($flag:literal, $opt:ident, $($field:ident).+) => {
@@ -440,6 +444,33 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
     }
     cfg.validate()?;
     Ok((cfg, ckpt))
+}
+
+/// Whether a fresh run may train into `--out`: a folder of its own files
+/// (or none) without a checkpoint, unless `--overwrite`. Checked when the
+/// run starts and again once it holds the folder's lock: a run that
+/// finished in the folder in between was replaced without `--overwrite`.
+pub(super) fn check_fresh_target(opts: &TrainOptions) -> Result<()> {
+    check_fresh_out(&opts.out)?;
+    if checkpoint_dir(&opts.out).is_some() && !opts.overwrite {
+        bail!(
+            "{} already holds a checkpoint; pass --resume to continue it, --overwrite to \
+             start afresh, or choose another --out",
+            opts.out.display()
+        );
+    }
+    if let Some(d) = incomplete_checkpoint(&opts.out)
+        && !opts.overwrite
+    {
+        bail!(
+            "{} holds files but no {} (an incomplete or damaged checkpoint, whose weights \
+             may still be wanted); pass --overwrite to start afresh (they are replaced once \
+             the new run's first checkpoint is in place), or choose another --out",
+            d.display(),
+            crate::model_dir::files::STATE
+        );
+    }
+    Ok(())
 }
 
 pub(super) fn fingerprint(info: &DatasetInfo, data: &TrainingData) -> DataFingerprint {

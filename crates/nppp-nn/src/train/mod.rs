@@ -29,7 +29,7 @@ use crate::io::{DatasetInfo, ModelMeta, load_dataset};
 use crate::model::NpppModel;
 use crate::model_dir::{
     Checkpoint, CheckpointContent, STATE_VERSION, TrainState, checkpoint_dir, load_optimizer,
-    load_weights, lock_model_dir, refresh_copies, save_checkpoint,
+    load_weights, lock_model_dir, open_checkpoint, refresh_copies, save_checkpoint,
 };
 use config::{fingerprint, resolve_config};
 use logging::{LOG_HEADER, append_live_row, log_row};
@@ -50,6 +50,12 @@ const TIME_SAFETY: f64 = 0.85;
 /// A checkpoint is also written this often (seconds) within long epochs, so
 /// an interrupted run loses little.
 const CHECKPOINT_EVERY_S: f64 = 300.0;
+
+/// What identifies a checkpoint's contents: its step and its files' sizes
+/// and checksums.
+fn state_key(s: &TrainState) -> String {
+    serde_json::to_string(&(s.step, &s.files)).unwrap_or_default()
+}
 
 /// Trains on the data file named in `opts` (see [`TrainOptions`]).
 pub fn train(opts: &TrainOptions) -> Result<TrainReport> {
@@ -148,6 +154,31 @@ fn train_on(
     let mut stop_at = opts.stop_after.map_or(total_steps, |s| s.min(total_steps));
     let fp = fingerprint(&info, &data);
     let _lock = lock_model_dir(out)?;
+    // Looked at again now that the folder is this run's: another run may
+    // have finished in it while this one loaded its data. A fresh run then
+    // replaced the model it saved without --overwrite; a resumed one
+    // trained on from its newer weights, counting from the older step.
+    match &ckpt {
+        None => config::check_fresh_target(opts).map_err(|e| {
+            e.context(format!(
+                "another `nppp train` saved into {} after this run started",
+                out.display()
+            ))
+        })?,
+        Some(c) => {
+            let now = open_checkpoint(out)?.map(|n| n.state);
+            if now.as_ref().map(state_key) != Some(state_key(&c.state)) {
+                bail!(
+                    "--resume: another `nppp train` saved a checkpoint into {} (now at step \
+                     {}) after this run read the one at step {}; run --resume again to go on \
+                     from the newest",
+                    out.display(),
+                    now.map_or_else(|| "none".to_string(), |s| s.step.to_string()),
+                    c.state.step
+                );
+            }
+        }
+    }
 
     // Start fresh or resume. A fresh run writes nothing into `out` until
     // its first checkpoint: a model already there (--overwrite) stays whole
@@ -218,8 +249,22 @@ fn train_on(
     }
 
     if let Some(s) = state.schedule_steps {
-        total_steps = total_steps.min(s);
-        stop_at = stop_at.min(total_steps);
+        if opts.steps.is_some() || opts.epochs.is_some() {
+            // A length asked for again: the schedule follows it (a run
+            // shortened by --minutes could never be lengthened).
+            state.schedule_steps = None;
+        } else {
+            if s < state.step {
+                bail!(
+                    "--resume: {}'s state.json is at step {} past its own schedule of {s} \
+                     steps: the checkpoint is damaged",
+                    out.display(),
+                    state.step
+                );
+            }
+            total_steps = total_steps.min(s);
+            stop_at = stop_at.min(total_steps);
+        }
     }
     let start_step = state.step;
     let pb = if opts.quiet {
@@ -451,4 +496,114 @@ fn train_on(
         schedule_steps: total_steps,
         metrics: state.last_metrics,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synthetic::SyntheticObject;
+
+    fn small(out: &std::path::Path) -> TrainOptions {
+        let mut o = TrainOptions::new("synthetic", out);
+        o.backend = crate::backend::BackendKind::Ndarray;
+        o.quiet = true;
+        o.batch = Some(16);
+        o.k = Some(4);
+        o.mask_batch = Some(32);
+        o.encoder_width = Some(32);
+        o.decoder_width = Some(16);
+        o.eval_rays = Some(16);
+        o.steps_per_epoch = Some(5);
+        o.steps = Some(5);
+        o.minutes = 0.0;
+        o
+    }
+
+    /// What this run checked before it loaded its data must still hold
+    /// once it holds the folder: a run that finished in the folder in
+    /// between is neither replaced by a fresh run (without --overwrite)
+    /// nor mixed into a resumed one.
+    #[test]
+    fn a_run_that_finished_in_the_folder_meanwhile_is_kept() {
+        let dir = std::env::temp_dir().join(format!("nppp-train-race-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let rays = SyntheticObject::Mirror { radius: 0.6 }.rays(200, 4, 3);
+        let info = crate::io::synthetic_header("mirror", 4);
+        let data = TrainingData::build(rays, 4, 10).unwrap();
+        let o = small(&dir);
+
+        // B looks at the empty folder, then A trains a whole model there.
+        let (cfg, ckpt) = resolve_config(&o).unwrap();
+        train_with_data(&o, info.clone(), data.clone()).unwrap();
+        let saved = std::fs::read(dir.join("checkpoint").join(files::WEIGHTS)).unwrap();
+        let e = train_on(&o, cfg, ckpt, info.clone(), data.clone()).unwrap_err();
+        let text = format!("{e:#}");
+        assert!(
+            text.contains("after this run started") && text.contains("already holds a checkpoint"),
+            "{text}"
+        );
+        assert_eq!(
+            std::fs::read(dir.join("checkpoint").join(files::WEIGHTS)).unwrap(),
+            saved
+        );
+
+        // B reads the checkpoint at step 5 to resume it; A resumes it to 10
+        // first.
+        let mut r = o.clone();
+        r.resume = true;
+        r.steps = Some(20);
+        let (cfg, ckpt) = resolve_config(&r).unwrap();
+        let mut a = r.clone();
+        a.stop_after = Some(10);
+        train_with_data(&a, info.clone(), data.clone()).unwrap();
+        let e = train_on(&r, cfg, ckpt, info, data).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("(now at step 10) after this run read the one at step 5"),
+            "{e}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A run shortened to fit --minutes records its schedule's length; a
+    /// resume that asks for a length again gets it (it stayed at the
+    /// shortened one, "152 of 152"), one that does not keeps the schedule,
+    /// and a schedule shorter than the step reached is damage.
+    #[test]
+    fn a_schedule_shortened_by_minutes_can_be_lengthened() {
+        let dir = std::env::temp_dir().join(format!("nppp-train-sched-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let rays = SyntheticObject::Mirror { radius: 0.6 }.rays(200, 4, 3);
+        let info = crate::io::synthetic_header("mirror", 4);
+        let data = TrainingData::build(rays, 4, 10).unwrap();
+        let mut o = small(&dir);
+        o.steps = Some(10);
+        o.stop_after = Some(5);
+        train_with_data(&o, info.clone(), data.clone()).unwrap();
+        // As --minutes leaves it: the schedule cut to the steps done.
+        let set_schedule = |n: u64| {
+            let p = dir.join("checkpoint").join(files::STATE);
+            let mut v: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+            v["schedule_steps"] = n.into();
+            std::fs::write(&p, v.to_string()).unwrap();
+        };
+        set_schedule(5);
+        let mut r = small(&dir);
+        r.resume = true;
+        r.steps = None;
+        assert_eq!(
+            train_with_data(&r, info.clone(), data.clone())
+                .unwrap()
+                .steps,
+            5
+        );
+        set_schedule(3);
+        let e = train_with_data(&r, info.clone(), data.clone()).unwrap_err();
+        assert!(e.to_string().contains("past its own schedule of 3"), "{e}");
+        r.steps = Some(12);
+        let rep = train_with_data(&r, info, data).unwrap();
+        assert_eq!((rep.steps, rep.steps_this_run), (12, 7));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
