@@ -285,8 +285,8 @@ pub fn run(a: &GenArgs) -> Result<()> {
     if st.exits > 0 && st.zero_exits == st.exits {
         nppp_files::note!(
             "warning: every one of the {} exits has zero throughput: the material absorbs all \
-             light or is an emitter (which reflects nothing). An estimator trained on this data \
-             renders the object black; pick a reflecting instance",
+             light. An estimator trained on this data renders the object black; pick a \
+             reflecting instance",
             st.exits
         );
     } else if st.exits > 0 && st.capped_exits as f64 > 0.05 * st.exits as f64 {

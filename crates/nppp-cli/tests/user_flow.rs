@@ -444,41 +444,48 @@ fn a_p_that_no_path_reaches_is_warned_about() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// `gen` on an emitter writes only zero-throughput exits: it warns and
-/// says what to pick instead; a reflecting object gets no warning.
+/// `gen` on an emitter is refused (a lamp ends every path that reaches it:
+/// nothing to learn, and the renderer leaves an estimator on a lamp
+/// unused); it wrote only zero-throughput exits with a warning before. A
+/// reflecting object gets no warning.
 #[test]
-fn gen_on_an_emitter_is_warned_about() {
+fn gen_on_an_emitter_is_refused() {
     let dir = scratch("gen-emitter");
     let scene = file("ok_tiny.json");
+    let args = |instance: &str, out: &Path| -> Vec<std::ffi::OsString> {
+        vec![
+            "gen".into(),
+            "--scene".into(),
+            scene.clone().into(),
+            "--instance".into(),
+            instance.into(),
+            "--rays".into(),
+            "200".into(),
+            "--k".into(),
+            "2".into(),
+            "--quiet".into(),
+            "--out".into(),
+            out.into(),
+        ]
+    };
     let generate = |instance: &str| {
         let out = dir.join(format!("i{instance}.nppd"));
-        let o = nppp([
-            "gen".as_ref(),
-            "--scene".as_ref(),
-            scene.as_os_str(),
-            "--instance".as_ref(),
-            instance.as_ref(),
-            "--rays".as_ref(),
-            "200".as_ref(),
-            "--k".as_ref(),
-            "2".as_ref(),
-            "--quiet".as_ref(),
-            "--out".as_ref(),
-            out.as_os_str(),
-        ]);
+        let o = nppp(args(instance, &out));
         assert_ok(&format!("gen --instance {instance}"), &o);
         assert!(out.exists());
         stderr(&o)
     };
     // Instance 1 is the lamp.
-    let err = generate("1");
+    let lamp = dir.join("i1.nppd");
+    let o = nppp(args("1", &lamp));
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
     assert!(
-        err.contains("warning: every one of the")
-            && err.contains("zero throughput")
-            && err.contains("emitter")
-            && err.contains("pick a reflecting instance"),
-        "{err}"
+        stderr(&o).contains("material \"lamp\" is an emitter")
+            && stderr(&o).contains("nothing for an estimator to learn"),
+        "{}",
+        stderr(&o)
     );
+    assert!(!lamp.exists());
     // Instance 3, the glass ball, and 0, the diffuse floor: no warning.
     for i in ["3", "0"] {
         let err = generate(i);

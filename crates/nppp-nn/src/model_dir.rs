@@ -405,12 +405,12 @@ pub fn load_weights(ckpt: &Checkpoint, device: &Device) -> Result<NpppModel> {
         let record =
             burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes))
                 .map_err(|e| {
-                anyhow::anyhow!(
-                    "loading {}: {e} (the Adam state is damaged or from another model: resume \
+                    anyhow::anyhow!(
+                        "loading {}: {e} (the Adam state is damaged or from another model: resume \
                      cannot go on from it; retrain with --overwrite)",
-                    path.display()
-                )
-            })?;
+                        path.display()
+                    )
+                })?;
         fresh.try_load_record(record).map_err(|e| {
             anyhow::anyhow!(
                 "loading {}: its weights do not fit the network {} describes (the model \
@@ -448,15 +448,13 @@ fn first_mismatch(message: &str) -> String {
 pub fn load_optimizer(ckpt: &Checkpoint, optim: ModuleOptimizer) -> Result<ModuleOptimizer> {
     let path = ckpt.dir.join(files::OPTIMIZER);
     no_panic(&format!("loading {}", path.display()), || {
-        optim
-            .load(&path)
-            .map_err(|e| {
-                anyhow::anyhow!(
-                    "loading {}: {e} (the Adam state is damaged or from another model: resume \
+        optim.load(&path).map_err(|e| {
+            anyhow::anyhow!(
+                "loading {}: {e} (the Adam state is damaged or from another model: resume \
                      cannot go on from it; retrain with --overwrite)",
-                    path.display()
-                )
-            })
+                path.display()
+            )
+        })
     })
 }
 
