@@ -171,6 +171,12 @@ fn at_least_two(s: &str) -> Result<usize, String> {
     count_in(s, 2..=usize::MAX)
 }
 
+/// A baked grid's resolution: a usage error like every other count (it
+/// was refused by bake itself, with status 1).
+fn grid_resolution(s: &str) -> Result<u32, String> {
+    count_in(s, 2..=256).map(|v| v as u32)
+}
+
 /// A learning rate: finite and above 0.
 fn positive_rate(s: &str) -> Result<f64, String> {
     let v: f64 = s.parse().map_err(|_| format!("\"{s}\" is not a number"))?;
@@ -220,11 +226,11 @@ pub struct BakeArgs {
     /// Model directory written by `nppp train`.
     #[arg(long)]
     pub model: PathBuf,
-    /// Latent grid resolution S (S^4 nodes x latent_dim channels).
-    #[arg(long, default_value_t = 32)]
+    /// Latent grid resolution S (S^4 nodes x latent_dim channels), 2 to 256.
+    #[arg(long, default_value_t = 32, value_parser = grid_resolution)]
     pub latent_grid: u32,
-    /// Mask grid resolution (S^4 logits).
-    #[arg(long, default_value_t = 32)]
+    /// Mask grid resolution (S^4 logits), 2 to 256.
+    #[arg(long, default_value_t = 32, value_parser = grid_resolution)]
     pub mask_grid: u32,
     /// Bits per latent value: 8, 4 or 2.
     #[arg(long, default_value_t = 8, value_parser = parse_bits)]

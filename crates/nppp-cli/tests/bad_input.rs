@@ -2013,6 +2013,22 @@ fn zero_counts_and_ignored_flags_are_usage_errors_naming_the_flag() {
         2,
         &["--eval-rays", "must be at least 1"],
     );
+    for (flag, value) in [
+        ("--latent-grid", "0"),
+        ("--mask-grid", "1"),
+        ("--latent-grid", "257"),
+    ] {
+        let o = nppp([
+            "bake".as_ref(),
+            "--model".as_ref(),
+            model.as_os_str(),
+            "--out".as_ref(),
+            dir.join("m.nppp").as_os_str(),
+            flag.as_ref(),
+            value.as_ref(),
+        ]);
+        common::assert_refused(&format!("bake {flag} {value}"), &o, 2, &[flag, "2 to 256"]);
+    }
     let o = nppp([
         "gen".as_ref(),
         "--mesh".as_ref(),
