@@ -329,7 +329,6 @@ where
 /// only in a model directory (its own plots) or with `overwrite`: beside a
 /// `results.csv` elsewhere, `results.svg` may be anyone's.
 pub fn plot_training_log(log: &Path, out: Option<&Path>, overwrite: bool) -> Result<Vec<PathBuf>> {
-    use plotters::prelude::*;
     let csv = if log.is_dir() {
         log.join("log.csv")
     } else {
@@ -373,32 +372,57 @@ pub fn plot_training_log(log: &Path, out: Option<&Path>, overwrite: bool) -> Res
         }
         let size = (900u32, 1000u32);
         if ext == "svg" {
-            let mut text = String::new();
-            draw_log(
-                SVGBackend::with_string(&mut text, size).into_drawing_area(),
-                &title,
-                &data,
-            )?;
-            nppp_files::create_parent(o).and_then(|_| nppp_files::write_atomic(o, text.as_bytes()))
+            let text = svg_of(size, |area| draw_log(area, &title, &data))?;
+            write_plot(o, text.as_bytes())?;
         } else {
-            let mut rgb = vec![0u8; (size.0 * size.1 * 3) as usize];
-            draw_log(
-                BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area(),
-                &title,
-                &data,
-            )?;
-            let mut png_bytes = Vec::new();
-            let mut enc = png::Encoder::new(&mut png_bytes, size.0, size.1);
-            enc.set_color(png::ColorType::Rgb);
-            enc.set_depth(png::BitDepth::Eight);
-            let mut w = enc.write_header().context("encoding the PNG")?;
-            w.write_image_data(&rgb).context("encoding the PNG")?;
-            w.finish().context("encoding the PNG")?;
-            nppp_files::create_parent(o).and_then(|_| nppp_files::write_atomic(o, &png_bytes))
+            let png = png_of(size, |area| draw_log(area, &title, &data))?;
+            write_plot(o, &png)?;
         }
-        .with_context(|| format!("writing {}", o.display()))?;
     }
     Ok(outs)
+}
+
+/// A plot drawn by `draw` as SVG text, in memory: written only once it is
+/// whole ([`write_plot`]). Drawn straight into the file, a plot that
+/// failed half-way replaced the old one with a blank page, and a link in
+/// its place was followed.
+pub fn svg_of(
+    size: (u32, u32),
+    draw: impl FnOnce(
+        plotters::drawing::DrawingArea<plotters::prelude::SVGBackend, plotters::coord::Shift>,
+    ) -> Result<()>,
+) -> Result<String> {
+    use plotters::prelude::*;
+    let mut text = String::new();
+    draw(SVGBackend::with_string(&mut text, size).into_drawing_area())?;
+    Ok(text)
+}
+
+/// As [`svg_of`], a PNG file's bytes.
+pub fn png_of(
+    size: (u32, u32),
+    draw: impl FnOnce(
+        plotters::drawing::DrawingArea<plotters::prelude::BitMapBackend, plotters::coord::Shift>,
+    ) -> Result<()>,
+) -> Result<Vec<u8>> {
+    use plotters::prelude::*;
+    let mut rgb = vec![0u8; (size.0 * size.1 * 3) as usize];
+    draw(BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area())?;
+    let mut png_bytes = Vec::new();
+    let mut enc = png::Encoder::new(&mut png_bytes, size.0, size.1);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().context("encoding the PNG")?;
+    w.write_image_data(&rgb).context("encoding the PNG")?;
+    w.finish().context("encoding the PNG")?;
+    Ok(png_bytes)
+}
+
+/// Puts a whole plot in place (a temporary file renamed over the target).
+pub fn write_plot(path: &Path, bytes: &[u8]) -> Result<()> {
+    nppp_files::create_parent(path)
+        .and_then(|_| nppp_files::write_atomic(path, bytes))
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 #[cfg(test)]

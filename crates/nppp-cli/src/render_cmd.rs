@@ -253,7 +253,7 @@ fn estimator_names(scene: &nppp_scene::Scene, ests: &Estimators) -> Vec<String> 
                         scene.mesh_names[inst.mesh], scene.material_names[inst.material]
                     )
                 })
-                .unwrap_or_else(|| format!("estimator {i}"))
+                .unwrap_or_else(|| format!("estimator {i} (its instances obstructed)"))
         })
         .collect()
 }
@@ -628,6 +628,9 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     let mut auto_choices = None;
     if auto && let Some(ests) = rs.estimators.take() {
         let names = estimator_names(&scene, &ests);
+        let released: Vec<bool> = (0..ests.list.len())
+            .map(|i| !ests.per_instance().contains(&Some(i as u32)))
+            .collect();
         let t = std::time::Instant::now();
         // A pilot of a few percent of the render, sized to its budget: two
         // halves of spp / 16 at a quarter of the resolution (4 spp per half
@@ -646,15 +649,32 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         let defaults = nppp_render::auto::PilotOptions::default();
         let min_p = settings.estimator_min_bounces.max(defaults.min_p);
         let min_p_medium = settings.estimator_min_bounces.max(defaults.min_p_medium);
+        let confirm_spp = (settings.spp / 32).clamp(1, 8);
+        if a.auto_confirm {
+            // Said, as --entry-nee and --decoder say where they do nothing:
+            // the flag was ignored without a word.
+            let pixels = u64::from(rs.camera.width) * u64::from(rs.camera.height);
+            let most = defaults.confirm_max_pixels;
+            if pixels > most {
+                nppp_files::note!(
+                    "warning: --auto-confirm does nothing here: the image has {pixels} pixels, \
+                     more than the {most} its confirmation pass renders at full resolution"
+                );
+            } else if 2 * confirm_spp * 2 > settings.spp / 2 {
+                nppp_files::note!(
+                    "warning: --auto-confirm does nothing at {} spp: one round of its \
+                     confirmation pass (two halves of PT and of a candidate, {confirm_spp} spp \
+                     each) must fit in half the samples; give --spp {} or more",
+                    settings.spp,
+                    8 * confirm_spp
+                );
+            }
+        }
         let pilot = nppp_render::auto::PilotOptions {
             max_bounces: settings.max_bounces,
             seed: settings.seed,
             spp: (settings.spp / 16).clamp(1, 16),
-            confirm_spp: if a.auto_confirm {
-                (settings.spp / 32).clamp(1, 8)
-            } else {
-                0
-            },
+            confirm_spp: if a.auto_confirm { confirm_spp } else { 0 },
             min_p,
             min_p_medium,
             max_p: defaults.max_p.max(min_p),
@@ -672,8 +692,18 @@ pub fn run(a: &RenderArgs) -> Result<()> {
                 .join("; "),
         );
         plan_seconds = t.elapsed().as_secs_f64();
-        for line in decision.describe(&names) {
-            nppp_files::note!("auto: {line}");
+        for (line, d) in decision.describe(&names).iter().zip(&decision.estimators) {
+            if released[d.index] {
+                // No instance left to try it on (each obstructed): it said
+                // "no P that auto tries is below M" (at M 256).
+                nppp_files::note!(
+                    "auto: {}: not used: every instance of it is traced for real (see the \
+                     warning above)",
+                    names[d.index]
+                );
+            } else {
+                nppp_files::note!("auto: {line}");
+            }
         }
         nppp_files::note!(
             "auto: pilot {:.2} s ({} samples at {}x{})",
@@ -772,9 +802,18 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(e) = &rs.estimators {
         let st = &stats.estimators;
         nppp_files::note!(
-            "estimators ({:?}, P = {}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {}, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped{}",
-            a.estimators,
-            e.min_bounces,
+            "estimators ({}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {}, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped{}",
+            // As the flag spells it (it printed `Auto`), and P where one P
+            // holds for all (auto chooses per estimator, said above).
+            match a.estimators {
+                EstimatorChoice::Auto => "auto, P per estimator as chosen".to_string(),
+                other => format!(
+                    "{}, P = {}",
+                    clap::ValueEnum::to_possible_value(&other)
+                        .map_or_else(String::new, |v| v.get_name().to_string()),
+                    e.min_bounces
+                ),
+            },
             st.entries,
             st.mask_skips,
             st.ambiguous,
@@ -948,11 +987,37 @@ fn part_settings(
     if let Some(c) = auto_choices {
         m.insert("auto".into(), c);
     }
+    if a.estimators == EstimatorChoice::Auto {
+        // Its confirmation pass renders the first samples its own way: a
+        // part with it and one without merged into neither render's image.
+        m.insert("auto_confirm".into(), a.auto_confirm.to_string());
+    }
     // The oracle and `off` read no estimator file, so their parts do not
     // depend on one (and render without them, as the full image does).
     let reads_files = !matches!(a.estimators, EstimatorChoice::Off | EstimatorChoice::Oracle);
+    // Each file once, however many instances name it (the room's 2,025
+    // knots hashed their one 16.8 MB file 2,025 times: 47 s a shard), and
+    // which instance names which file as one hash of the pairs.
+    if reads_files {
+        let mut h = nppp_scene::hash::Fnv1a::new();
+        for (i, inst) in scene.instances.iter().enumerate() {
+            if let Some(path) = &inst.estimator {
+                h.u64(i as u64);
+                h.bytes(path.as_os_str().as_encoded_bytes());
+                h.bytes(&[0]);
+            }
+        }
+        m.insert(
+            "estimator of each instance".into(),
+            format!("{:016x}", h.finish()),
+        );
+    }
     for (i, inst) in scene.instances.iter().enumerate().filter(|_| reads_files) {
         if let Some(path) = &inst.estimator {
+            let key = format!("estimator {}", path.display());
+            if m.contains_key(&key) {
+                continue;
+            }
             let bytes = nppp_files::read_regular(path).with_context(|| {
                 format!(
                     "{}: instances[{i}].estimator {}",
@@ -962,10 +1027,7 @@ fn part_settings(
             })?;
             let mut h = nppp_scene::hash::Fnv1a::new();
             h.bytes(&bytes);
-            m.insert(
-                format!("instances[{i}].estimator"),
-                format!("{:016x}", h.finish()),
-            );
+            m.insert(key, format!("{:016x}", h.finish()));
         }
     }
     Ok(m)

@@ -1140,7 +1140,7 @@ fn valid_scenes_render_finite_images() {
         (
             "ok_estimator.json",
             &["--estimators", "neural"][..],
-            "estimators (Neural",
+            "estimators (neural, P = ",
         ),
         // The default, auto, runs its pilot with the same nonsense estimator.
         ("ok_estimator.json", &[][..], "auto: ball/white"),

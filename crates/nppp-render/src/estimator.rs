@@ -918,7 +918,11 @@ impl Estimators {
                 // Traced for real: see `unused_on_emitters`.
                 continue;
             }
-            let key = (path.clone(), inst.mesh, inst.material);
+            // One file under any spelling (`m/x`, `./m/x`, a link) is one
+            // estimator: four spellings of the knot's file were loaded four
+            // times (65 MiB for 16) and decided on apart by `auto`.
+            let file = std::fs::canonicalize(path).unwrap_or_else(|_| path.clone());
+            let key = (file, inst.mesh, inst.material);
             if let Some(&e) = by_key.get(&key) {
                 per_instance[ii] = Some(e);
                 continue;

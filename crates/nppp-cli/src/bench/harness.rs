@@ -187,6 +187,36 @@ fn check_outputs_spare_inputs(
         let name = scene_name(p);
         outputs.extend(["svg", "png"].map(|e| out.join(format!("{name}.{e}"))));
         let dir = out.join(&name);
+        // Each scene's folder must be one that can hold files: a file of
+        // that name ended the run at that scene, after the earlier ones'
+        // hours of renders. So must be the cached files' names in it.
+        let folder_problem = |d: &Path| -> Option<String> {
+            match std::fs::metadata(d) {
+                Ok(m) if !m.is_dir() => Some(format!("{} is a file, not a folder", d.display())),
+                _ => nppp_files::check_writable(&d.join("reference.exr"))
+                    .err()
+                    .map(|e| format!("{}: {e}", d.join("reference.exr").display())),
+            }
+        };
+        if let Some(problem) = folder_problem(&dir) {
+            bail!(
+                "--out {}: bench writes {}'s reference and previews into {}, and {problem}",
+                out.display(),
+                p.display(),
+                dir.display()
+            );
+        }
+        for f in ["reference.exr", "reference.png", "reference.json"] {
+            let fp = dir.join(f);
+            if fp.is_dir() {
+                bail!(
+                    "--out {}: {} is a folder where bench writes {}'s {f}",
+                    out.display(),
+                    fp.display(),
+                    p.display()
+                );
+            }
+        }
         if let Some((what, input)) = inputs.iter().find(|(_, i)| nppp_files::is_inside(i, &dir)) {
             bail!(
                 "--out {}: bench writes {}'s reference and previews into {}, which holds \

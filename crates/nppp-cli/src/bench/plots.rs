@@ -20,7 +20,6 @@ struct Curve {
 /// `--plot-csv`: one plot per scene of a results.csv, each configuration's
 /// (seconds, relMSE) averaged over seeds at each spp, as `curves` draws them.
 pub(super) fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
-    use plotters::prelude::{BitMapBackend, IntoDrawingArea, SVGBackend};
     use std::collections::BTreeMap;
     let text = nppp_files::read_regular_to_string(csv)
         .with_context(|| format!("reading {}", csv.display()))?;
@@ -119,20 +118,22 @@ pub(super) fn plot_from_csv(csv: &Path, out: &Path) -> Result<()> {
             .filter(|c| !c.points.is_empty())
             .collect();
         let title = format!("{name}: time vs relMSE ({w}x{h})");
-        let svg = out.join(format!("{name}.svg"));
-        draw(
-            SVGBackend::new(&svg, (900, 640)).into_drawing_area(),
-            &title,
-            &curves,
-        )
-        .with_context(|| format!("writing {}", svg.display()))?;
-        let png = out.join(format!("{name}.png"));
-        draw(
-            BitMapBackend::new(&png, (900, 640)).into_drawing_area(),
-            &title,
-            &curves,
-        )
-        .with_context(|| format!("writing {}", png.display()))?;
+        let (svg, png) = (
+            out.join(format!("{name}.svg")),
+            out.join(format!("{name}.png")),
+        );
+        for p in [&svg, &png] {
+            nppp_files::ensure_not_input("--out", p, &[("the --plot-csv file", csv)])
+                .map_err(anyhow::Error::msg)?;
+        }
+        // Drawn whole in memory, then put in place: a CSV with nothing to
+        // draw left a blank page over the old plot.
+        let svg_text = crate::plot::svg_of(PLOT_SIZE, |a| draw(a, &title, &curves))
+            .with_context(|| format!("drawing {}", svg.display()))?;
+        let png_bytes = crate::plot::png_of(PLOT_SIZE, |a| draw(a, &title, &curves))
+            .with_context(|| format!("drawing {}", png.display()))?;
+        crate::plot::write_plot(&svg, svg_text.as_bytes())?;
+        crate::plot::write_plot(&png, &png_bytes)?;
         nppp_files::note!("{}, {}", svg.display(), png.display());
     }
     Ok(())
@@ -275,7 +276,6 @@ where
 
 /// Writes `<out>/<scene>.svg` and `.png`; returns what was written (or why not).
 pub(super) fn plot_scene(r: &SceneResult, out: &Path) -> Result<Vec<String>> {
-    use plotters::prelude::*;
     let cs = curves(r);
     if cs.is_empty() {
         return Ok(vec![format!("{}: nothing to plot", r.name)]);
@@ -285,25 +285,25 @@ pub(super) fn plot_scene(r: &SceneResult, out: &Path) -> Result<Vec<String>> {
     }
     let title = format!("{}: time vs relMSE ({}x{})", r.name, r.width, r.height);
     let mut done = Vec::new();
+    // In memory first, then put in place (a link at the path is replaced,
+    // not followed, as every other output of bench).
     let svg = out.join(format!("{}.svg", r.name));
-    draw(
-        SVGBackend::new(&svg, (900, 640)).into_drawing_area(),
-        &title,
-        &cs,
-    )
-    .with_context(|| format!("writing {}", svg.display()))?;
+    let text = crate::plot::svg_of(PLOT_SIZE, |a| draw(a, &title, &cs))
+        .with_context(|| format!("drawing {}", svg.display()))?;
+    crate::plot::write_plot(&svg, text.as_bytes())?;
     done.push(svg.display().to_string());
     let png = out.join(format!("{}.png", r.name));
-    match draw(
-        BitMapBackend::new(&png, (900, 640)).into_drawing_area(),
-        &title,
-        &cs,
-    ) {
+    match crate::plot::png_of(PLOT_SIZE, |a| draw(a, &title, &cs))
+        .and_then(|bytes| crate::plot::write_plot(&png, &bytes))
+    {
         Ok(()) => done.push(png.display().to_string()),
         Err(e) => done.push(format!("{} not written: {e:#}", png.display())),
     }
     Ok(done)
 }
+
+/// Pixels of a bench plot.
+const PLOT_SIZE: (u32, u32) = (900, 640);
 
 #[cfg(test)]
 mod tests {

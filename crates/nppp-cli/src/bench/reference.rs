@@ -55,10 +55,12 @@ pub(super) fn resolve_scene(dir: &Path, name: &str) -> Result<PathBuf> {
         dir.join(format!("{name}.json"))
     };
     ensure!(
-        p.is_file(),
+        p.exists(),
         "{}: scene not found (run nppp bench from the repository root, or pass --scenes-dir or a path in --scenes)",
         p.display()
     );
+    // There, but a folder or a device: said as render says it.
+    nppp_files::check_regular(&p).with_context(|| format!("{}: the scene file", p.display()))?;
     Ok(p)
 }
 
@@ -182,12 +184,22 @@ pub(super) fn load_or_render_reference(
     let mut meta = want.clone();
     meta.seconds = sa.seconds + sb.seconds;
     meta.noise_floor_rel_mse = floor;
+    // The settings file says which image the EXR is, so it goes first and
+    // comes back last: a run that failed (or was killed) after writing the
+    // EXR left the old settings beside the new image, and the next run
+    // measured against an M = 1 reference "cached, settings match".
+    match std::fs::remove_file(&json) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            return Err(e).with_context(|| format!("removing the stale {}", json.display()));
+        }
+        _ => {}
+    }
     image_io::write_exr(&img, &exr).with_context(|| format!("writing {}", exr.display()))?;
-    let png = dir.join("reference.png");
-    image_io::write_png(&img, &png).with_context(|| format!("writing {}", png.display()))?;
     let text = serde_json::to_string_pretty(&meta).context("serializing the reference settings")?;
     image_io::write_text(&json, &(text + "\n"))
         .with_context(|| format!("writing {}", json.display()))?;
+    let png = dir.join("reference.png");
+    image_io::write_png(&img, &png).with_context(|| format!("writing {}", png.display()))?;
     nppp_files::note!(
         "[{name}] reference: {:.1} s, noise floor relMSE {:.3e}",
         meta.seconds,

@@ -161,11 +161,14 @@ fn unsure_candidate(pt: &Trial, d: &EstimatorDecision, opts: &PilotOptions) -> O
 /// PT's work; unshrunk, that made it unsure, and confirming it spent 8
 /// samples per pixel of PT, 4x the estimator's cost each (auto 8.9x PT's
 /// efficiency where P = 0 alone is 11.2x).
-fn efficiency_bounds(pt: &Trial, t: &Trial, sigmas: f64, tau: f64) -> (f64, f64) {
+pub(super) fn efficiency_bounds(pt: &Trial, t: &Trial, sigmas: f64, tau: f64) -> (f64, f64) {
     let r = (t.rel_var / pt.rel_var).ln();
     let s2 = t.log_variance_ratio_var(pt);
     let tau2 = tau * tau;
-    let (mean, sd) = if tau2 + s2 > 0.0 {
+    let (mean, sd) = if s2.is_infinite() {
+        // Unmeasured: the prior alone.
+        (0.0, tau)
+    } else if tau2 + s2 > 0.0 {
         (r * tau2 / (tau2 + s2), (tau2 * s2 / (tau2 + s2)).sqrt())
     } else {
         (0.0, 0.0)

@@ -393,7 +393,14 @@ impl Trial {
     /// the glass's own, where the two configurations' paths differ.
     fn log_variance_ratio_var(&self, pt: &Trial) -> f64 {
         let n = self.pixel_rel_var.len();
-        if n < 2 || n != pt.pixel_rel_var.len() {
+        if n == 1 {
+            // One pixel says nothing about its own spread: unmeasured, so
+            // the prior (and the work) decides. Its standard error of 0
+            // read as certainty, and one pixel chose (efficiency 0.84x to
+            // 261x over four seeds of a 1x1 image).
+            return f64::INFINITY;
+        }
+        if n == 0 || n != pt.pixel_rel_var.len() {
             return (self.rel_var_se / self.rel_var).powi(2) + (pt.rel_var_se / pt.rel_var).powi(2);
         }
         let diff: Vec<f64> = self
@@ -1051,6 +1058,21 @@ pub fn efficiency(pt: &Trial, t: &Trial, tau: f64) -> f64 {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// A one-pixel pilot measures no spread: its variance ratio is not
+    /// believed at all (the prior keeps it at 1 and the work decides),
+    /// where a standard error of 0 made one pixel decide.
+    #[test]
+    fn one_pixel_measures_no_variance_ratio() {
+        let mut pt = trial(1.0, 0.0, 1.0, None);
+        let mut t = trial(0.01, 0.0, 2.0, Some(1));
+        pt.pixel_rel_var = vec![1.0];
+        t.pixel_rel_var = vec![0.01];
+        assert!(t.log_variance_ratio_var(&pt).is_infinite());
+        assert!((efficiency(&pt, &t, 0.35) - 0.5).abs() < 1e-12);
+        let (low, high) = confirm::efficiency_bounds(&pt, &t, 2.0, 0.35);
+        assert!(low.is_finite() && high.is_finite() && low < 0.5 && 0.5 < high);
+    }
 
     /// The paired difference's noise: none where the candidate differs
     /// from PT by the same amount in both halves (a bias, not noise), and
