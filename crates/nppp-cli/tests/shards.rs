@@ -168,6 +168,14 @@ fn merge_refuses_parts_of_other_renders_and_gaps() {
         &["--estimators", "off", "--max-bounces", "4"],
         (1, 3),
     );
+    // auto with and without its confirmation pass (which renders the
+    // first samples its own way): parts of two different renders.
+    let auto0 = part("auto0.nppr", &["--estimators", "auto"], (0, 2));
+    let confirmed1 = part(
+        "confirmed1.nppr",
+        &["--estimators", "auto", "--auto-confirm"],
+        (1, 2),
+    );
     let other_scene = dir.join("other.nppr");
     assert_ok(
         "other scene",
@@ -214,6 +222,11 @@ fn merge_refuses_parts_of_other_renders_and_gaps() {
             "a part twice",
             vec![p0.clone(), p1.clone(), p1.clone(), p2.clone()],
             vec!["named twice"],
+        ),
+        (
+            "with and without --auto-confirm",
+            vec![auto0, confirmed1],
+            vec!["confirmed1.nppr", "auto_confirm = true"],
         ),
     ];
     for (what, parts, needles) in cases {

@@ -81,3 +81,35 @@ fn every_committed_scene_loads_with_its_estimators() {
     }
     assert!(with_estimators >= 12, "{with_estimators}");
 }
+
+/// One file named through several spellings is one estimator: loaded once
+/// and shared (four spellings of the knot's file were loaded four times,
+/// 65 MiB for 16, and `auto` decided on each apart).
+#[test]
+fn one_file_under_several_spellings_is_loaded_once() {
+    let root = repo_root();
+    let path = root.join("data/scenes/cornell-box.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let insts = v["instances"].as_array_mut().unwrap();
+    let knot = insts
+        .iter()
+        .find(|i| i.get("estimator").is_some())
+        .unwrap()
+        .clone();
+    let spelled = knot["estimator"].as_str().unwrap().to_string();
+    for other in [
+        spelled.replace("models/", "models/./"),
+        format!("../scenes/{spelled}"),
+    ] {
+        let mut copy = knot.clone();
+        copy["estimator"] = other.into();
+        insts.push(copy);
+    }
+    let scene = nppp_scene::parse_scene(&v.to_string(), &path).unwrap();
+    let ests = Estimators::load(&scene, EstimatorMode::Neural, 0)
+        .unwrap()
+        .unwrap();
+    assert_eq!(ests.list.len(), 1);
+    assert_eq!(ests.per_instance().iter().flatten().count(), 3);
+}
