@@ -2304,6 +2304,50 @@ fn a_damaged_cached_bench_reference_is_rendered_again() {
     assert_eq!(o.status.code(), Some(0), "{}", text(&o));
     assert!(text(&o).contains("impossible noise floor"), "{}", text(&o));
     assert!(!std::fs::read_to_string(&json).unwrap().contains("-1.0"));
+
+    // A plot's path holding a link: replaced, the file it named untouched
+    // (the plot was drawn through the link).
+    let victim = dir.join("victim.txt");
+    std::fs::write(&victim, "keep").unwrap();
+    let svg = out.join("ok_tiny.svg");
+    std::fs::remove_file(&svg).unwrap();
+    std::os::unix::fs::symlink(&victim, &svg).unwrap();
+    let o = bench();
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    assert_eq!(std::fs::read_to_string(&victim).unwrap(), "keep");
+    assert!(!std::fs::symlink_metadata(&svg).unwrap().is_symlink());
+
+    // A folder where the reference's preview goes: refused before any
+    // render (a run failed there after writing a new reference.exr beside
+    // the old settings, and the next measured against the other M's image
+    // as "cached, settings match"; the settings are now also written right
+    // after the image).
+    let png = out.join("ok_tiny/reference.png");
+    let exr_before = std::fs::read(&exr).unwrap();
+    std::fs::remove_file(&png).unwrap();
+    std::fs::create_dir(&png).unwrap();
+    let mut m2: Vec<std::ffi::OsString> = [
+        "bench",
+        "--spp",
+        "1",
+        "--reference-spp",
+        "2",
+        "--seeds",
+        "1",
+        "--max-bounces",
+        "2",
+    ]
+    .map(Into::into)
+    .to_vec();
+    m2.extend(["--scenes".into(), file("ok_tiny.json").into_os_string()]);
+    m2.extend(["--out".into(), out.clone().into_os_string()]);
+    assert_clean_error(
+        "bench with a folder at reference.png",
+        &nppp(&m2),
+        &["reference.png", "is a folder"],
+    );
+    assert_eq!(std::fs::read(&exr).unwrap(), exr_before);
+    std::fs::remove_dir(&png).unwrap();
 }
 
 /// The thread-count variables rayon reads (its deprecated
