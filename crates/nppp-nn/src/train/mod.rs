@@ -503,6 +503,13 @@ mod tests {
     use super::*;
     use crate::synthetic::SyntheticObject;
 
+    /// 200 rays of a mirror ball, k = 4.
+    fn mirror_data() -> (DatasetInfo, TrainingData) {
+        let rays = SyntheticObject::Mirror { radius: 0.6 }.rays(200, 4, 3);
+        let info = crate::io::synthetic_header("mirror", 4);
+        (info, TrainingData::build(rays, 4, 10).unwrap())
+    }
+
     fn small(out: &std::path::Path) -> TrainOptions {
         let mut o = TrainOptions::new("synthetic", out);
         o.backend = crate::backend::BackendKind::Ndarray;
@@ -527,9 +534,7 @@ mod tests {
     fn a_run_that_finished_in_the_folder_meanwhile_is_kept() {
         let dir = std::env::temp_dir().join(format!("nppp-train-race-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let rays = SyntheticObject::Mirror { radius: 0.6 }.rays(200, 4, 3);
-        let info = crate::io::synthetic_header("mirror", 4);
-        let data = TrainingData::build(rays, 4, 10).unwrap();
+        let (info, data) = mirror_data();
         let o = small(&dir);
 
         // B looks at the empty folder, then A trains a whole model there.
@@ -573,9 +578,7 @@ mod tests {
     fn a_schedule_shortened_by_minutes_can_be_lengthened() {
         let dir = std::env::temp_dir().join(format!("nppp-train-sched-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let rays = SyntheticObject::Mirror { radius: 0.6 }.rays(200, 4, 3);
-        let info = crate::io::synthetic_header("mirror", 4);
-        let data = TrainingData::build(rays, 4, 10).unwrap();
+        let (info, data) = mirror_data();
         let mut o = small(&dir);
         o.steps = Some(10);
         o.stop_after = Some(5);
