@@ -995,40 +995,39 @@ fn part_settings(
     // The oracle and `off` read no estimator file, so their parts do not
     // depend on one (and render without them, as the full image does).
     let reads_files = !matches!(a.estimators, EstimatorChoice::Off | EstimatorChoice::Oracle);
-    // Each file once, however many instances name it (the room's 2,025
-    // knots hashed their one 16.8 MB file 2,025 times: 47 s a shard), and
-    // which instance names which file as one hash of the pairs.
+    // Each file read and hashed once, however many instances name it (the
+    // room's 2,025 knots hashed their one 16.8 MB file 2,025 times: 47 s a
+    // shard), and which instance has which content as one hash: by content,
+    // not by path, so that parts rendered from other folders still merge.
     if reads_files {
-        let mut h = nppp_scene::hash::Fnv1a::new();
+        let mut by_path: std::collections::HashMap<&std::path::Path, u64> = Default::default();
+        let mut all = nppp_scene::hash::Fnv1a::new();
         for (i, inst) in scene.instances.iter().enumerate() {
-            if let Some(path) = &inst.estimator {
-                h.u64(i as u64);
-                h.bytes(path.as_os_str().as_encoded_bytes());
-                h.bytes(&[0]);
-            }
+            let Some(path) = &inst.estimator else {
+                continue;
+            };
+            let content = match by_path.get(path.as_path()) {
+                Some(&c) => c,
+                None => {
+                    let bytes = nppp_files::read_regular(path).with_context(|| {
+                        format!(
+                            "{}: instances[{i}].estimator {}",
+                            a.scene.display(),
+                            path.display()
+                        )
+                    })?;
+                    let mut h = nppp_scene::hash::Fnv1a::new();
+                    h.bytes(&bytes);
+                    *by_path.entry(path.as_path()).or_insert(h.finish())
+                }
+            };
+            all.u64(i as u64);
+            all.u64(content);
         }
         m.insert(
-            "estimator of each instance".into(),
-            format!("{:016x}", h.finish()),
+            "estimator files of the instances (hash)".into(),
+            format!("{:016x}", all.finish()),
         );
-    }
-    for (i, inst) in scene.instances.iter().enumerate().filter(|_| reads_files) {
-        if let Some(path) = &inst.estimator {
-            let key = format!("estimator {}", path.display());
-            if m.contains_key(&key) {
-                continue;
-            }
-            let bytes = nppp_files::read_regular(path).with_context(|| {
-                format!(
-                    "{}: instances[{i}].estimator {}",
-                    a.scene.display(),
-                    path.display()
-                )
-            })?;
-            let mut h = nppp_scene::hash::Fnv1a::new();
-            h.bytes(&bytes);
-            m.insert(key, format!("{:016x}", h.finish()));
-        }
     }
     Ok(m)
 }
