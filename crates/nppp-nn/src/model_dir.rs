@@ -404,13 +404,7 @@ pub fn load_weights(ckpt: &Checkpoint, device: &Device) -> Result<NpppModel> {
     no_panic(&format!("loading {}", path.display()), || {
         let record =
             burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes))
-                .map_err(|e| {
-                    anyhow::anyhow!(
-                        "loading {}: {e} (the Adam state is damaged or from another model: resume \
-                     cannot go on from it; retrain with --overwrite)",
-                        path.display()
-                    )
-                })?;
+                .map_err(|e| anyhow::anyhow!("loading {}: {e}", path.display()))?;
         fresh.try_load_record(record).map_err(|e| {
             anyhow::anyhow!(
                 "loading {}: its weights do not fit the network {} describes (the model \
