@@ -684,6 +684,42 @@ fn a_forged_meta_json_is_refused_naming_the_file() {
         assert_error(key, &o, &["checkpoint/train_config.json", needle]);
         std::fs::write(&sp, &state).unwrap();
     }
+    std::fs::write(&tp, &config).unwrap();
+    // A key nothing reads: serde skipped it, so a misspelt setting in a
+    // hand-edited file trained or baked with its default, silently.
+    let misspelt = |file: &str, text: &str, path: &[&str], needle: &str| {
+        let mut v: serde_json::Value = serde_json::from_str(text).unwrap();
+        let (last, parents) = path.split_last().unwrap();
+        let mut at = &mut v;
+        for p in parents {
+            at = &mut at[*p];
+        }
+        at[*last] = serde_json::json!(0.5);
+        if file == "state.json" {
+            std::fs::write(&sp, serde_json::to_string_pretty(&v).unwrap()).unwrap();
+        } else {
+            forge_checkpoint_file(&model, file, &v);
+        }
+        let o = nppp(bake_args(&model, &out, &["--no-eval"]));
+        let named = format!("checkpoint/{file}");
+        assert_error(needle, &o, &[&named, needle, "unknown key"]);
+        assert!(!out.exists());
+        let mut args = small_train(&data, &model, "2");
+        args.push("--resume".as_ref());
+        assert_error(needle, &nppp(&args), &[&named, needle]);
+    };
+    misspelt("train_config.json", &config, &["lerning_rate"], "\"lerning_rate\"");
+    misspelt("train_config.json", &config, &["model", "hiden"], "\"model.hiden\"");
+    std::fs::write(&tp, &config).unwrap();
+    std::fs::write(&sp, &state).unwrap();
+    misspelt("meta.json", &meta, &["dataset", "radus"], "\"dataset.radus\"");
+    std::fs::write(&mp, &meta).unwrap();
+    std::fs::write(&sp, &state).unwrap();
+    misspelt("state.json", &state, &["stepz"], "\"stepz\"");
+    std::fs::write(&sp, &state).unwrap();
+    // The model is intact again: bake takes it.
+    let o = nppp(bake_args(&model, &out, &["--no-eval"]));
+    assert!(o.status.success(), "{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&dir);
 }
 

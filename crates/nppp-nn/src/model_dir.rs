@@ -244,6 +244,7 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
     }
     let state: TrainState =
         serde_json::from_str(&text).with_context(|| format!("{} is corrupt", sp.display()))?;
+    check_known_keys(&sp, &text, &state)?;
     for name in files::IN_CHECKPOINT {
         let Some(want) = state.files.iter().find(|f| f.name == *name) else {
             bail!(
@@ -271,17 +272,19 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
         }
     }
     let tc = dir.join(files::TRAIN_CONFIG);
-    let train_config =
-        TrainConfig::load(&tc).map_err(|e| anyhow::anyhow!("cannot read {}: {e}", tc.display()))?;
+    let tc_text = nppp_files::read_regular_to_string(&tc)
+        .with_context(|| format!("reading {}", tc.display()))?;
+    let train_config = TrainConfig::load_binary(tc_text.as_bytes())
+        .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", tc.display()))?;
+    check_known_keys(&tc, &tc_text, &train_config)?;
     train_config
         .check_values()
         .with_context(|| format!("{}", tc.display()))?;
     let mp = dir.join(files::META);
-    let meta: ModelMeta = serde_json::from_str(
-        &nppp_files::read_regular_to_string(&mp)
-            .with_context(|| format!("reading {}", mp.display()))?,
-    )
-    .with_context(|| format!("{} is corrupt", mp.display()))?;
+    let meta_text = nppp_files::read_regular_to_string(&mp)
+        .with_context(|| format!("reading {}", mp.display()))?;
+    let meta: ModelMeta =
+        serde_json::from_str(&meta_text).with_context(|| format!("{} is corrupt", mp.display()))?;
     if meta.format != ModelMeta::FORMAT {
         bail!(
             "{}: not an nppp model's meta.json (format {:?}, not {:?})",
@@ -307,6 +310,7 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
             ModelMeta::VERSION
         );
     }
+    check_known_keys(&mp, &meta_text, &meta)?;
     if let Err(what) = meta.dataset.check() {
         bail!("{}: dataset: {what}; {rebuild}", mp.display());
     }
@@ -376,6 +380,60 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
         meta,
         log,
     }))
+}
+
+/// Refuses a JSON file with a key this build does not read. Serde (and
+/// Burn's config derive) skip unknown keys, so a misspelt key in a
+/// hand-edited file (`"lerning_rate"`) would otherwise train or bake with
+/// the default silently. `parsed` is what was read from `text`; a key of
+/// the file that `parsed` does not write back is one nothing read.
+fn check_known_keys<T: Serialize>(path: &Path, text: &str, parsed: &T) -> Result<()> {
+    let (Ok(file), Ok(known)) = (
+        serde_json::from_str::<serde_json::Value>(text),
+        serde_json::to_value(parsed),
+    ) else {
+        return Ok(());
+    };
+    match first_unknown_key(&file, &known, "") {
+        Some(key) => bail!(
+            "{}: unknown key \"{key}\" (this build does not read it: a misspelt key, or a file \
+             from another version of nppp)",
+            path.display()
+        ),
+        None => Ok(()),
+    }
+}
+
+/// The path (`model.hidden`, `files[2].crc`) of the first key of `file`
+/// that `known` lacks. A key whose value is `null` or `false` counts as
+/// absent: optional and flag fields are left out when written in those
+/// states (`skip_serializing_if`), and may be written either way.
+fn first_unknown_key(
+    file: &serde_json::Value,
+    known: &serde_json::Value,
+    at: &str,
+) -> Option<String> {
+    use serde_json::Value;
+    match (file, known) {
+        (Value::Object(f), Value::Object(k)) => f.iter().find_map(|(key, v)| {
+            let path = if at.is_empty() {
+                key.clone()
+            } else {
+                format!("{at}.{key}")
+            };
+            match k.get(key) {
+                Some(kv) => first_unknown_key(v, kv, &path),
+                None if v.is_null() || *v == Value::Bool(false) => None,
+                None => Some(path),
+            }
+        }),
+        (Value::Array(f), Value::Array(k)) => f
+            .iter()
+            .zip(k)
+            .enumerate()
+            .find_map(|(i, (v, kv))| first_unknown_key(v, kv, &format!("{at}[{i}]"))),
+        _ => None,
+    }
 }
 
 /// Runs `f`, turning a panic inside Burn (it panics on some malformed files)
