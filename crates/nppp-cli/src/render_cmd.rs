@@ -534,7 +534,8 @@ pub fn run(a: &RenderArgs) -> Result<()> {
         } else {
             0
         };
-    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene, pixel_bytes) {
+    if let Some(problem) = nppp_render::scene_data::render_memory_problem(&scene, pixel_bytes, mode)
+    {
         bail!("{}: {problem}", a.scene.display());
     }
     let mut rs = RenderScene::with_estimators(&scene, mode, settings.estimator_min_bounces)

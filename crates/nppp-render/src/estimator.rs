@@ -852,7 +852,7 @@ pub enum EstimatorLoadError {
 /// sampled, which the exit rule adds without a MIS weight: an oracle on a
 /// lamp over a floor rendered 6% bright. Such an instance is traced for
 /// real, and the renderer says so ([`unused_on_emitters`]).
-fn on_emitter(scene: &nppp_scene::Scene, ii: usize) -> bool {
+pub(crate) fn on_emitter(scene: &nppp_scene::Scene, ii: usize) -> bool {
     let inst = &scene.instances[ii];
     inst.estimator.is_some()
         && matches!(

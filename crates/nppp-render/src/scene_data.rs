@@ -37,18 +37,62 @@ pub const AUTO_CONFIRM_BYTES_PER_PIXEL: u64 = 2 * crate::render_part::PART_BYTES
 /// bytes an instance, and most of that peak is the scene file's parse,
 /// over before the render starts; rounded up.
 pub const RENDER_BYTES_PER_INSTANCE: u64 = 1200;
+/// Memory a render holds per byte of each distinct estimator file it
+/// loads: the file as read, its grids and decoders once parsed, the mask's
+/// sign table and the surface snap grid. Measured peak resident memory of
+/// `nppp render` at 64 x 64, neural over oracle (which loads no file): 61
+/// MB for the knot's 16.8 MB file alone, 78 MB for three such files;
+/// rounded up from 3.6x.
+pub const RENDER_BYTES_PER_ESTIMATOR_FILE_BYTE: u64 = 4;
 
 /// Why `scene` cannot be rendered in the memory available, if it cannot:
 /// checked before the acceleration structures are built, so such a scene
 /// gets a message instead of an allocation failure. `pixel_bytes`: what the
 /// render holds per pixel ([`RENDER_BYTES_PER_PIXEL`], with
-/// [`AUTO_CONFIRM_BYTES_PER_PIXEL`] added for `--auto-confirm`).
-pub fn render_memory_problem(scene: &Scene, pixel_bytes: u64) -> Option<String> {
-    render_memory_problem_within(scene, pixel_bytes, nppp_files::available_memory()?)
+/// [`AUTO_CONFIRM_BYTES_PER_PIXEL`] added for `--auto-confirm`); `mode`:
+/// which estimators it loads (the files of all but `Off` and `Oracle`).
+pub fn render_memory_problem(
+    scene: &Scene,
+    pixel_bytes: u64,
+    mode: crate::estimator::EstimatorMode,
+) -> Option<String> {
+    let available = nppp_files::available_memory()?;
+    let estimator_bytes = estimator_file_bytes(scene, mode);
+    render_memory_problem_within(scene, pixel_bytes, estimator_bytes, available)
 }
 
-/// [`render_memory_problem`] with `available` bytes.
-fn render_memory_problem_within(scene: &Scene, pixel_bytes: u64, available: u64) -> Option<String> {
+/// The total size of the distinct estimator files a render in `mode`
+/// loads (one file under several spellings once, as `Estimators::load`
+/// keys them; files on emitters are not loaded). A file that cannot be
+/// read counts 0: loading it reports that.
+fn estimator_file_bytes(scene: &Scene, mode: crate::estimator::EstimatorMode) -> u64 {
+    use crate::estimator::EstimatorMode;
+    if matches!(mode, EstimatorMode::Off | EstimatorMode::Oracle) {
+        return 0;
+    }
+    let files: std::collections::BTreeSet<std::path::PathBuf> = scene
+        .instances
+        .iter()
+        .enumerate()
+        .filter(|&(ii, _)| !crate::estimator::on_emitter(scene, ii))
+        .filter_map(|(_, inst)| inst.estimator.as_ref())
+        .map(|p| std::fs::canonicalize(p).unwrap_or_else(|_| p.clone()))
+        .collect();
+    files
+        .iter()
+        .filter_map(|p| std::fs::metadata(p).ok())
+        .map(|m| m.len())
+        .fold(0u64, u64::saturating_add)
+}
+
+/// [`render_memory_problem`] with `available` bytes and estimator files of
+/// `estimator_bytes` in all.
+fn render_memory_problem_within(
+    scene: &Scene,
+    pixel_bytes: u64,
+    estimator_bytes: u64,
+    available: u64,
+) -> Option<String> {
     let mut used = vec![false; scene.meshes.len()];
     for i in &scene.instances {
         if let Some(u) = used.get_mut(i.mesh) {
@@ -68,6 +112,7 @@ fn render_memory_problem_within(scene: &Scene, pixel_bytes: u64, available: u64)
         triangles.saturating_mul(RENDER_BYTES_PER_TRIANGLE),
         instances.saturating_mul(RENDER_BYTES_PER_INSTANCE),
         pixels.saturating_mul(pixel_bytes),
+        estimator_bytes.saturating_mul(RENDER_BYTES_PER_ESTIMATOR_FILE_BYTE),
     ];
     let need = parts.iter().fold(0u64, |a, &b| a.saturating_add(b));
     (need > available).then(|| {
@@ -76,14 +121,28 @@ fn render_memory_problem_within(scene: &Scene, pixel_bytes: u64, available: u64)
             "rendering its {triangles} triangles (of the meshes its instances use, each once), \
              {instances} instances and a {w}x{h} image takes about {} ({} for the triangles at \
              about {RENDER_BYTES_PER_TRIANGLE} bytes each: the meshes, their trees and the merged \
-             copies; {} for the instances; {} for the image), more than the {} of memory \
+             copies; {} for the instances; {} for the image{}), more than the {} of memory \
              available: use fewer or coarser meshes (instances of one mesh share its \
-             triangles), fewer instances or a smaller image",
+             triangles), fewer instances, a smaller image{}",
             nppp_files::format_bytes(need),
             nppp_files::format_bytes(parts[0]),
             nppp_files::format_bytes(parts[1]),
             nppp_files::format_bytes(parts[2]),
-            nppp_files::format_bytes(available)
+            if estimator_bytes > 0 {
+                format!(
+                    "; {} for {} of estimator files",
+                    nppp_files::format_bytes(parts[3]),
+                    nppp_files::format_bytes(estimator_bytes)
+                )
+            } else {
+                String::new()
+            },
+            nppp_files::format_bytes(available),
+            if estimator_bytes > 0 {
+                " or --estimators off"
+            } else {
+                ""
+            }
         )
     })
 }
@@ -365,6 +424,7 @@ impl RenderScene {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::estimator::EstimatorMode;
 
     /// The meshes the instances use count once each (a shared mesh once,
     /// an unused one not at all), and the message says what and how much.
@@ -383,8 +443,8 @@ mod tests {
         // 320 triangles of "ball", once: 128,000 bytes; two instances,
         // 2,400; an 8x8 image, 3,072.
         let px = RENDER_BYTES_PER_PIXEL;
-        assert_eq!(render_memory_problem_within(&scene, px, 133_472), None);
-        let msg = render_memory_problem_within(&scene, px, 133_471).unwrap();
+        assert_eq!(render_memory_problem_within(&scene, px, 0, 133_472), None);
+        let msg = render_memory_problem_within(&scene, px, 0, 133_471).unwrap();
         assert!(msg.contains("rendering its 320 triangles"), "{msg}");
         assert!(msg.contains("2 instances and a 8x8 image"), "{msg}");
         assert!(
@@ -393,8 +453,47 @@ mod tests {
         );
         // --auto-confirm's two films of exact sums: 280 bytes a pixel more.
         let confirm = px + AUTO_CONFIRM_BYTES_PER_PIXEL;
-        assert_eq!(render_memory_problem_within(&scene, confirm, 151_392), None);
-        assert!(render_memory_problem_within(&scene, confirm, 151_391).is_some());
-        assert_eq!(render_memory_problem(&scene, px), None);
+        assert_eq!(render_memory_problem_within(&scene, confirm, 0, 151_392), None);
+        assert!(render_memory_problem_within(&scene, confirm, 0, 151_391).is_some());
+        assert_eq!(render_memory_problem(&scene, px, EstimatorMode::Neural), None);
+        // Estimator files: four bytes a byte of file (a 16.8 MB knot's
+        // file took 61 MB more than the oracle, which loads none).
+        assert_eq!(render_memory_problem_within(&scene, px, 1000, 137_472), None);
+        let msg = render_memory_problem_within(&scene, px, 1000, 137_471).unwrap();
+        assert!(
+            msg.contains("3.91 KiB for 1000 B of estimator files")
+                && msg.contains("or --estimators off"),
+            "{msg}"
+        );
+    }
+
+    /// The files a render loads, each once under any spelling; none for
+    /// plain path tracing or the oracle, none on a lamp.
+    #[test]
+    fn estimator_files_count_once_each_and_only_where_loaded() {
+        let dir = std::env::temp_dir().join(format!("nppp-est-bytes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("a.nppp"), vec![0u8; 1000]).unwrap();
+        std::fs::write(dir.join("b.nppp"), vec![0u8; 300]).unwrap();
+        let d = dir.display().to_string().replace('\\', "/");
+        let scene = nppp_scene::parse_scene(
+            &format!(
+                r#"{{"camera": {{"position": [0, 0, -5], "look_at": [0, 0, 0], "fov_y_deg": 40, "width": 8, "height": 8}},
+                "materials": {{"white": {{"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+                              "lamp": {{"type": "emitter", "radiance": [1, 1, 1]}}}},
+                "meshes": {{"ball": {{"icosphere": {{"center": [0, 0, 0], "radius": 1, "subdivisions": 1}}}}}},
+                "instances": [{{"mesh": "ball", "material": "white", "estimator": "{d}/a.nppp"}},
+                              {{"mesh": "ball", "material": "white", "estimator": "{d}/./a.nppp"}},
+                              {{"mesh": "ball", "material": "white", "estimator": "{d}/missing.nppp"}},
+                              {{"mesh": "ball", "material": "lamp", "estimator": "{d}/b.nppp"}}]}}"#
+            ),
+            std::path::Path::new("files.json"),
+        )
+        .unwrap();
+        assert_eq!(estimator_file_bytes(&scene, EstimatorMode::Neural), 1000);
+        assert_eq!(estimator_file_bytes(&scene, EstimatorMode::FreeExits), 1000);
+        assert_eq!(estimator_file_bytes(&scene, EstimatorMode::Off), 0);
+        assert_eq!(estimator_file_bytes(&scene, EstimatorMode::Oracle), 0);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -289,6 +289,7 @@ fn load_for_bench(path: &Path, plan: &Plan) -> Result<nppp_scene::Scene> {
     if let Some(problem) = nppp_render::scene_data::render_memory_problem(
         &scene,
         nppp_render::scene_data::RENDER_BYTES_PER_PIXEL,
+        EstimatorMode::Neural,
     ) {
         bail!("{}: {problem}", path.display());
     }
