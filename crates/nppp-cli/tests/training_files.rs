@@ -708,11 +708,26 @@ fn a_forged_meta_json_is_refused_naming_the_file() {
         args.push("--resume".as_ref());
         assert_error(needle, &nppp(&args), &[&named, needle]);
     };
-    misspelt("train_config.json", &config, &["lerning_rate"], "\"lerning_rate\"");
-    misspelt("train_config.json", &config, &["model", "hiden"], "\"model.hiden\"");
+    misspelt(
+        "train_config.json",
+        &config,
+        &["lerning_rate"],
+        "\"lerning_rate\"",
+    );
+    misspelt(
+        "train_config.json",
+        &config,
+        &["model", "hiden"],
+        "\"model.hiden\"",
+    );
     std::fs::write(&tp, &config).unwrap();
     std::fs::write(&sp, &state).unwrap();
-    misspelt("meta.json", &meta, &["dataset", "radus"], "\"dataset.radus\"");
+    misspelt(
+        "meta.json",
+        &meta,
+        &["dataset", "radus"],
+        "\"dataset.radus\"",
+    );
     std::fs::write(&mp, &meta).unwrap();
     std::fs::write(&sp, &state).unwrap();
     misspelt("state.json", &state, &["stepz"], "\"stepz\"");

@@ -453,12 +453,21 @@ mod tests {
         );
         // --auto-confirm's two films of exact sums: 280 bytes a pixel more.
         let confirm = px + AUTO_CONFIRM_BYTES_PER_PIXEL;
-        assert_eq!(render_memory_problem_within(&scene, confirm, 0, 151_392), None);
+        assert_eq!(
+            render_memory_problem_within(&scene, confirm, 0, 151_392),
+            None
+        );
         assert!(render_memory_problem_within(&scene, confirm, 0, 151_391).is_some());
-        assert_eq!(render_memory_problem(&scene, px, EstimatorMode::Neural), None);
+        assert_eq!(
+            render_memory_problem(&scene, px, EstimatorMode::Neural),
+            None
+        );
         // Estimator files: four bytes a byte of file (a 16.8 MB knot's
         // file took 61 MB more than the oracle, which loads none).
-        assert_eq!(render_memory_problem_within(&scene, px, 1000, 137_472), None);
+        assert_eq!(
+            render_memory_problem_within(&scene, px, 1000, 137_472),
+            None
+        );
         let msg = render_memory_problem_within(&scene, px, 1000, 137_471).unwrap();
         assert!(
             msg.contains("3.91 KiB for 1000 B of estimator files")
