@@ -403,6 +403,14 @@ fn check_memory(triangles: u64, what: &str) -> Result<()> {
 /// The object named by the flags, and the files it was read from (which
 /// `--out` must not name).
 fn load_object(a: &GenArgs) -> Result<(GenObject, Vec<(String, PathBuf)>)> {
+    // clap's `requires` does not hold here when --mesh is given (it
+    // conflicts with --scene): the instance was ignored, silently.
+    if let (None, Some(i)) = (&a.scene, a.instance) {
+        bail!(
+            "--instance {i} names an instance of --scene, and no --scene was given: give \
+             --scene FILE --instance N, or --mesh and --material without --instance"
+        );
+    }
     if let Some(path) = &a.scene {
         let scene = nppp_scene::load_scene(path)?;
         let index = a.instance.context("--scene needs --instance N")?;

@@ -352,11 +352,29 @@ fn forward_stop_signals_as_term() {
 #[cfg(not(unix))]
 fn forward_stop_signals_as_term() {}
 
+/// A file-size limit (`ulimit -f`) sends SIGXFSZ to a write past it, whose
+/// default action ends the process at once: every command died with the
+/// shell's "File size limit exceeded" and left its temporary file. Ignored,
+/// the write fails with EFBIG instead, and the command reports it naming
+/// the file, and removes what it wrote, as for a full disk.
+#[cfg(unix)]
+fn fail_writes_past_the_file_size_limit() {
+    // SAFETY: sets a signal's disposition to "ignore"; nothing else in the
+    // program handles SIGXFSZ.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+    }
+}
+
+#[cfg(not(unix))]
+fn fail_writes_past_the_file_size_limit() {}
+
 fn run(cli: Cli) -> Result<()> {
     if !matches!(cli.command, Command::Train { .. }) {
         clean_up_on_interrupt()?;
     }
     forward_stop_signals_as_term();
+    fail_writes_past_the_file_size_limit();
     match cli.command {
         Command::Render { args, threads } => {
             threads.install()?;

@@ -55,7 +55,7 @@ pub fn run(a: &MeshArgs) -> Result<()> {
     };
     // Into a new folder as render, gen and bake write theirs.
     nppp_files::create_parent(&a.out)
-        .and_then(|_| nppp_scene::procedural::write_obj(&tri, &a.out))
+        .and_then(|_| nppp_scene::procedural::write_obj(&tri, &a.out, a.overwrite))
         .with_context(|| format!("writing {}", a.out.display()))?;
     nppp_files::note!(
         "{}: {} vertices, {} triangles",

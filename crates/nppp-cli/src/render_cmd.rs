@@ -273,6 +273,14 @@ fn check_outputs(a: &RenderArgs, scene: &nppp_scene::Scene) -> Result<()> {
     }
     let has_ext = crate::has_extension;
     if a.shard.is_some() || a.samples.is_some() {
+        // clap's `requires = "png"` does not hold beside --shard, which
+        // conflicts with --png: the flags were accepted and did nothing.
+        anyhow::ensure!(
+            a.exposure == 0.0 && a.tonemap == TonemapChoice::Clamp,
+            "--exposure and --tonemap shape the PNG preview, which a render part does not \
+             write (`nppp merge --png` writes the merged image's, at exposure 0 with the clamp \
+             curve)"
+        );
         anyhow::ensure!(
             has_ext(&a.out, "nppr"),
             "--out {}: with --shard or --samples the output is a render part for `nppp merge`; name it *.nppr",

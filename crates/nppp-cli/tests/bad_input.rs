@@ -2183,6 +2183,24 @@ fn parts_without_estimators_bench_names_and_obj_tails() {
     let o = bench(&scenes);
     assert_clean_error("bench, one name twice", &o, &["have the same file name"]);
     assert!(!out.exists(), "bench created --out before refusing");
+    // A scene whose folder is where a report or a plot goes: refused
+    // before its renders (they ran, and the report was lost at the end).
+    std::fs::copy(&scene, dir.join("results.md.json")).unwrap();
+    std::fs::copy(&scene, a.join("x.svg.json")).unwrap();
+    let o = bench(&dir.join("results.md.json").display().to_string());
+    assert_clean_error(
+        "bench, results.md.json",
+        &o,
+        &["results.md.json", "its report"],
+    );
+    assert!(!out.exists(), "bench began before refusing");
+    let o = bench(&format!(
+        "{},{}",
+        a.join("x.svg.json").display(),
+        a.join("x.json").display()
+    ));
+    assert_clean_error("bench, x.svg.json", &o, &["x.svg.json", "a scene's plot"]);
+    assert!(!out.exists(), "bench began before refusing");
     // A bad scene after a good one is refused before the good one's
     // renders, not after them.
     let bad = dir.join("bad.json");

@@ -298,7 +298,7 @@ fn shard_flags_are_checked_before_rendering() {
     let part = dir.join("p.nppr");
     // (what, flags, --out, exit status, needles)
     type Case<'a> = (&'a str, Vec<&'a str>, PathBuf, i32, Vec<&'a str>);
-    let cases: [Case; 8] = [
+    let cases: [Case; 10] = [
         (
             "I = K",
             vec!["--shard", "6/6"],
@@ -354,6 +354,22 @@ fn shard_flags_are_checked_before_rendering() {
             part.clone(),
             2,
             vec!["--png"],
+        ),
+        // The preview's flags without a preview were accepted and did
+        // nothing (clap's `requires` does not hold beside --shard).
+        (
+            "with --exposure",
+            vec!["--shard", "0/2", "--exposure", "3"],
+            part.clone(),
+            1,
+            vec!["--exposure", "does not write"],
+        ),
+        (
+            "with --tonemap",
+            vec!["--samples", "0..2", "--tonemap", "filmic"],
+            part.clone(),
+            1,
+            vec!["--tonemap", "does not write"],
         ),
     ];
     for (what, flags, out, code, needles) in cases {

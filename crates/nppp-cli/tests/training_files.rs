@@ -414,6 +414,33 @@ fn an_interrupted_gen_leaves_no_temporary_file() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A file-size limit (`ulimit -f`): its SIGXFSZ killed every command at
+/// the write past it, with no message of nppp's and the temporary file
+/// left behind. The write fails instead, and the error names the file.
+#[cfg(unix)]
+#[test]
+fn a_file_size_limit_is_an_error_naming_the_file() {
+    let dir = scratch("file-size-limit");
+    let scene =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data/scenes/cornell-materials.json");
+    let out = dir.join("o.exr");
+    let o = Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -f 4 && exec \"$@\"")
+        .arg("sh")
+        .arg(env!("CARGO_BIN_EXE_nppp"))
+        .args(["render", "--spp", "1", "--max-bounces", "1", "--quiet"])
+        .args(["--width", "320", "--height", "240", "--out"])
+        .arg(&out)
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert_error("ulimit -f 4", &o, &["o.exr", "File too large"]);
+    let left: Vec<_> = std::fs::read_dir(&dir).unwrap().collect();
+    assert!(left.is_empty(), "left {left:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn render_never_writes_over_its_reference() {
     let dir = scratch("render-ref");
@@ -732,9 +759,106 @@ fn a_forged_meta_json_is_refused_naming_the_file() {
     std::fs::write(&sp, &state).unwrap();
     misspelt("state.json", &state, &["stepz"], "\"stepz\"");
     std::fs::write(&sp, &state).unwrap();
+    // state.json has no checksum of its own: values no run writes went
+    // into the log (a 309-digit time, a 300-digit loss).
+    for (key, value, needle) in [
+        ("elapsed_s", serde_json::json!(1e308), "elapsed_s = "),
+        ("elapsed_s", serde_json::json!(-4.0), "elapsed_s = -4"),
+        (
+            "epoch_sums",
+            serde_json::json!([1e308, 0, 0, 0]),
+            "epoch_sums[0] = 1e308",
+        ),
+    ] {
+        let mut v: serde_json::Value = serde_json::from_str(&state).unwrap();
+        v[key] = value;
+        std::fs::write(&sp, serde_json::to_string_pretty(&v).unwrap()).unwrap();
+        let o = nppp(bake_args(&model, &out, &["--no-eval"]));
+        assert_error(needle, &o, &["checkpoint/state.json", needle, "damaged"]);
+    }
+    std::fs::write(&sp, &state).unwrap();
     // The model is intact again: bake takes it.
     let o = nppp(bake_args(&model, &out, &["--no-eval"]));
     assert!(o.status.success(), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Training data under a path that is not UTF-8: the model records the
+/// path in JSON, which cannot hold it; the run failed at its first
+/// checkpoint with "path contains invalid UTF-8 characters", naming no
+/// file. Refused up front, by name.
+#[cfg(unix)]
+#[test]
+fn training_data_under_a_path_that_is_not_utf8_is_refused_by_name() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = scratch("non-utf8");
+    let odd = dir.join(OsStr::from_bytes(b"d\xfe"));
+    std::fs::create_dir_all(&odd).unwrap();
+    let data = odd.join("k.nppd");
+    write_data(&data, 400, 4);
+    let out = dir.join("m");
+    let o = nppp(small_train(&data, &out, "1"));
+    assert_error(
+        "non-UTF-8 --data",
+        &o,
+        &["--data", "k.nppd", "not valid UTF-8"],
+    );
+    assert!(!out.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Files of the user's inside a checkpoint folder: each checkpoint swap
+/// deleted the folder it replaced with all it held, so `train --resume
+/// --data m/checkpoint/data.nppd` exited 0 and deleted its own training
+/// data. Refused before any work, for resumed and fresh runs, the files
+/// kept.
+#[test]
+fn files_put_in_a_checkpoint_folder_are_never_deleted() {
+    let dir = scratch("foreign-in-checkpoint");
+    let (data, model) = trained(&dir);
+    let inside = model.join("checkpoint/data.nppd");
+    std::fs::copy(&data, &inside).unwrap();
+    let mut args = small_train(&inside, &model, "2");
+    args.push("--resume".as_ref());
+    let o = nppp(&args);
+    assert_error(
+        "--resume --data inside",
+        &o,
+        &[
+            "checkpoint",
+            "\"data.nppd\"",
+            "did not write",
+            "move it out",
+        ],
+    );
+    assert!(inside.is_file());
+    let mut args = small_train(&data, &model, "1");
+    args.push("--overwrite".as_ref());
+    assert_error(
+        "--overwrite",
+        &nppp(&args),
+        &["\"data.nppd\"", "move it out"],
+    );
+    assert!(inside.is_file());
+    // In `checkpoint.old` too (a kill between a swap's renames leaves one).
+    std::fs::remove_file(&inside).unwrap();
+    std::fs::create_dir_all(model.join("checkpoint.old")).unwrap();
+    std::fs::write(model.join("checkpoint.old/notes.txt"), b"mine").unwrap();
+    let mut args = small_train(&data, &model, "2");
+    args.push("--resume".as_ref());
+    assert_error(
+        "checkpoint.old",
+        &nppp(&args),
+        &["checkpoint.old", "\"notes.txt\""],
+    );
+    assert_eq!(
+        std::fs::read(model.join("checkpoint.old/notes.txt")).unwrap(),
+        b"mine"
+    );
+    // Without it the run resumes, and the debris of train's own goes.
+    std::fs::remove_file(model.join("checkpoint.old/notes.txt")).unwrap();
+    assert_ok("--resume", &nppp(&args));
+    assert!(!model.join("checkpoint.old").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
 

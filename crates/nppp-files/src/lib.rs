@@ -55,21 +55,50 @@ macro_rules! note {
 /// `s` with its control characters other than newline and tab escaped
 /// (`\u{1b}`): mesh names, keys and notes come from files, and a terminal
 /// would act on an escape sequence printed raw (an adversarial scene turned
-/// an error message red and rang the bell).
+/// an error message red and rang the bell). A word (a run without spaces)
+/// longer than [`PRINTED_WORD_MAX`] characters keeps its two ends: a scene
+/// with a 20 MB mesh name printed all of it in an error.
 pub fn printable(s: &str) -> std::borrow::Cow<'_, str> {
-    if !s.chars().any(|c| c.is_control() && c != '\n' && c != '\t') {
+    let control = |c: char| c.is_control() && c != '\n' && c != '\t';
+    let long_word = || {
+        s.split(char::is_whitespace)
+            .any(|w| w.len() > PRINTED_WORD_MAX && w.chars().count() > PRINTED_WORD_MAX)
+    };
+    if !s.chars().any(control) && !long_word() {
         return std::borrow::Cow::Borrowed(s);
     }
-    let mut out = String::with_capacity(s.len() + 16);
+    let mut escaped = String::with_capacity(s.len() + 16);
     for c in s.chars() {
-        if c.is_control() && c != '\n' && c != '\t' {
-            out.extend(c.escape_unicode());
+        if control(c) {
+            escaped.extend(c.escape_unicode());
         } else {
-            out.push(c);
+            escaped.push(c);
         }
+    }
+    let mut out = String::with_capacity(escaped.len().min(1 << 16));
+    let mut rest = escaped.as_str();
+    while !rest.is_empty() {
+        let end = rest.find(char::is_whitespace).unwrap_or(rest.len());
+        let (word, after) = rest.split_at(end);
+        let n = word.chars().count();
+        if n > PRINTED_WORD_MAX {
+            let keep = PRINTED_WORD_MAX / 2 - 20;
+            out.extend(word.chars().take(keep));
+            out.push_str(&format!("...[{} characters left out]...", n - 2 * keep));
+            out.extend(word.chars().skip(n - keep));
+        } else {
+            out.push_str(word);
+        }
+        let space = after.chars().next().map_or(0, char::len_utf8);
+        out.push_str(&after[..space]);
+        rest = &after[space..];
     }
     std::borrow::Cow::Owned(out)
 }
+
+/// The longest word [`printable`] prints whole: longer than any path a
+/// file system takes (4,096 bytes on Linux) would be too long to read.
+pub const PRINTED_WORD_MAX: usize = 4200;
 
 use std::ffi::OsString;
 use std::fs::File;
@@ -1028,6 +1057,40 @@ mod tests {
         ));
         assert_eq!(printable("a\u{1b}[31mred\u{7}"), "a\\u{1b}[31mred\\u{7}");
         assert_eq!(printable("\u{9b}x"), "\\u{9b}x");
+    }
+
+    /// A 20 MB name in a message keeps its ends; words up to the longest
+    /// path stay whole, and so does everything around the long word.
+    #[test]
+    fn printable_shortens_only_words_longer_than_any_path() {
+        let path = "/d".repeat(2048);
+        assert!(matches!(printable(&path), std::borrow::Cow::Borrowed(_)));
+        let name = format!("a{}z", "\u{e9}".repeat(20_000_000));
+        let msg = format!("unknown mesh \"x\" (defined: \"{name}\")\n\tnext");
+        let shown = printable(&msg);
+        assert!(shown.len() < 2 * PRINTED_WORD_MAX + 100, "{}", shown.len());
+        assert!(shown.starts_with("unknown mesh \"x\" (defined: \"a\u{e9}"));
+        assert!(
+            shown.ends_with("\u{e9}z\")\n\tnext"),
+            "{}",
+            &shown[shown.len() - 20..]
+        );
+        assert!(
+            shown.contains("...[19995845 characters left out]..."),
+            "{shown:.300}"
+        );
+        // Escaped control characters count as what is printed.
+        let bells = "\u{7}".repeat(1000);
+        let shown = printable(&bells);
+        assert!(
+            shown.contains("...[840 characters left out]..."),
+            "{shown:.100}"
+        );
+        assert!(
+            shown.chars().count() < PRINTED_WORD_MAX,
+            "{}",
+            shown.chars().count()
+        );
     }
 
     fn scratch(name: &str) -> ScratchDir {

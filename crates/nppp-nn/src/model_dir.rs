@@ -245,6 +245,24 @@ pub fn open_checkpoint(model_dir: &Path) -> Result<Option<Checkpoint>> {
     let state: TrainState =
         serde_json::from_str(&text).with_context(|| format!("{} is corrupt", sp.display()))?;
     check_known_keys(&sp, &text, &state)?;
+    // Not checksummed itself: values no run writes went into the log (a
+    // 309-digit time, a negative one, a 300-digit loss).
+    // (1e10 s is 317 years of training.)
+    let bad = if !(0.0..=1e10).contains(&state.elapsed_s) {
+        Some(format!("elapsed_s = {}", state.elapsed_s))
+    } else {
+        state
+            .epoch_sums
+            .iter()
+            .position(|v| !v.is_finite() || v.abs() > 1e30)
+            .map(|i| format!("epoch_sums[{i}] = {:e}", state.epoch_sums[i]))
+    };
+    if let Some(what) = bad {
+        bail!(
+            "{}: {what} is not a value a run writes: the file is damaged; {rebuild}",
+            sp.display()
+        );
+    }
     for name in files::IN_CHECKPOINT {
         let Some(want) = state.files.iter().find(|f| f.name == *name) else {
             bail!(
@@ -516,6 +534,70 @@ fn written_by_train(name: &str) -> bool {
     files::ALL.contains(&name) || (name.starts_with('.') && name.ends_with(".tmp"))
 }
 
+/// Whether `name`, in a checkpoint folder, is `nppp train`'s: one of a
+/// checkpoint's files, or the temporary file of one being written.
+fn in_checkpoint_by_train(name: &str) -> bool {
+    let own = |n: &str| n == files::STATE || files::IN_CHECKPOINT.contains(&n);
+    own(name)
+        || (name.ends_with(".tmp")
+            && std::iter::once(files::STATE)
+                .chain(files::IN_CHECKPOINT.iter().copied())
+                .any(|f| name.trim_start_matches('.').starts_with(f)))
+}
+
+/// Refuses a model directory whose checkpoint folders (`checkpoint`,
+/// `checkpoint.old`, `checkpoint.tmp`) hold anything `nppp train` did not
+/// write. Each swap deletes the folder it replaces with all it holds:
+/// training data, an image or a second model placed inside `checkpoint/`
+/// was deleted without a word by the next checkpoint.
+pub fn check_checkpoint_folders(out: &Path) -> Result<()> {
+    for sub in [
+        files::CHECKPOINT,
+        files::CHECKPOINT_OLD,
+        files::CHECKPOINT_TMP,
+    ] {
+        let dir = out.join(sub);
+        if let Some(name) = foreign_entry(&dir)? {
+            bail!(
+                "{} holds {name:?}, which `nppp train` did not write: every checkpoint \
+                 replaces that folder whole, so move it out of the model directory first",
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The first entry of checkpoint folder `dir` that `nppp train` did not
+/// write (none where `dir` is not a folder).
+fn foreign_entry(dir: &Path) -> Result<Option<String>> {
+    if !fs::symlink_metadata(dir).is_ok_and(|m| m.is_dir()) {
+        return Ok(None);
+    }
+    for e in fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let name = e?.file_name().to_string_lossy().into_owned();
+        if !in_checkpoint_by_train(&name) {
+            return Ok(Some(name));
+        }
+    }
+    Ok(None)
+}
+
+/// Deletes a checkpoint folder `nppp train` replaces, unless it holds a
+/// file of someone else's ([`check_checkpoint_folders`], checked again
+/// here: such a file may have been put there while the run trained).
+fn remove_checkpoint_folder(dir: &Path) -> Result<()> {
+    if let Some(name) = foreign_entry(dir)? {
+        bail!(
+            "{} holds {name:?}, which `nppp train` did not write; it was kept, and so was the \
+             folder: move the file out of the model directory, then run `nppp train --resume` \
+             again",
+            dir.display()
+        );
+    }
+    fs::remove_dir_all(dir).with_context(|| format!("removing {}", dir.display()))
+}
+
 /// Whether a fresh run may write into `out`: it does not exist, is empty,
 /// or holds nothing but what `nppp train` writes (so a user's own folder is
 /// never filled with, or stripped of, files).
@@ -686,13 +768,13 @@ pub fn save_checkpoint(out: &Path, c: &CheckpointContent, state: &TrainState) ->
     // one is in place.
     if cur.join(files::STATE).is_file() {
         if old.exists() {
-            fs::remove_dir_all(&old).with_context(|| format!("removing {}", old.display()))?;
+            remove_checkpoint_folder(&old)?;
         }
         fs::rename(&cur, &old).with_context(|| format!("moving {}", cur.display()))?;
         nppp_files::crash_point("checkpoint:between-renames");
     } else if cur.exists() {
         // Not a checkpoint (no state): debris of a crash, never read.
-        fs::remove_dir_all(&cur).with_context(|| format!("removing {}", cur.display()))?;
+        remove_checkpoint_folder(&cur)?;
     }
     // The model folder holds a checkpoint from here on: a signal no longer
     // removes it.
@@ -700,7 +782,7 @@ pub fn save_checkpoint(out: &Path, c: &CheckpointContent, state: &TrainState) ->
         .with_context(|| format!("moving {} into place", tmp.display()))?;
     nppp_files::crash_point("checkpoint:swapped");
     if old.exists() {
-        fs::remove_dir_all(&old).with_context(|| format!("removing {}", old.display()))?;
+        remove_checkpoint_folder(&old)?;
     }
     write_copies(out, &texts)
 }
@@ -713,7 +795,7 @@ fn write_checkpoint_tmp(
     state: &TrainState,
 ) -> Result<Vec<(&'static str, String)>> {
     if tmp.exists() {
-        fs::remove_dir_all(tmp).with_context(|| format!("removing {}", tmp.display()))?;
+        remove_checkpoint_folder(tmp)?;
     }
     nppp_files::create_tracked_dir(tmp).with_context(|| format!("creating {}", tmp.display()))?;
     let w = tmp.join(files::WEIGHTS);

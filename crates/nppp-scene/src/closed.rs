@@ -6,8 +6,8 @@ use glam::Vec3;
 use std::collections::HashMap;
 
 /// Why a mesh does not bound a volume: one offending edge, by its end points
-/// (vertices at bit-identical positions count as one, as OBJ files split
-/// vertices at seams of normals or texture coordinates).
+/// (vertices at one position count as one, as OBJ files split vertices at
+/// seams of normals or texture coordinates; -0 and 0 are one coordinate).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OpenEdge {
     pub from: Vec3,
@@ -23,7 +23,9 @@ pub struct OpenEdge {
 /// Degenerate triangles (two corners at one position) are ignored: they
 /// enclose nothing.
 pub fn open_edge(mesh: &Mesh) -> Option<OpenEdge> {
-    let key = |p: Vec3| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+    // Bit patterns, with -0 made 0 (adding 0 does that, and nothing else):
+    // a cube with one seam vertex written `-0` was called open.
+    let key = |p: Vec3| [p.x, p.y, p.z].map(|c| (c + 0.0).to_bits());
     let mut welded: HashMap<[u32; 3], u32> = HashMap::with_capacity(mesh.positions.len());
     let ids: Vec<u32> = mesh
         .positions
@@ -132,6 +134,14 @@ mod tests {
                 .extend(t.iter().map(|&i| s.positions[i as usize]));
             split.triangles.push([n, n + 1, n + 2]);
         }
+        assert_eq!(open_edge(&split), None);
+        // One copy of a vertex at 0 written as -0.
+        let at_zero = split
+            .positions
+            .iter()
+            .position(|p| p.x == 0.0)
+            .expect("an icosphere has vertices at x = 0");
+        split.positions[at_zero].x = -0.0;
         assert_eq!(open_edge(&split), None);
     }
 }

@@ -145,7 +145,7 @@ fn procedural_obj_export_round_trips_through_the_loader_bit_for_bit() {
     .expect("builds");
     let dir = common::scratch_dir("roundtrip");
     let obj = dir.join("meshes/m.obj");
-    write_obj(&built, &obj).expect("write");
+    write_obj(&built, &obj, true).expect("write");
     let text = std::fs::read_to_string(&obj).expect("read back");
     let _ = std::fs::remove_dir_all(&dir);
     let m = obj_mesh(&text, false).expect("loads");

@@ -228,7 +228,33 @@ fn check_outputs_spare_inputs(
             );
         }
     }
+    // A scene named like a report or a plot (`results.md.json`,
+    // `a.svg.json` beside `a.json`) ran every render, then its folder
+    // stood where the report was to go: hours of measurements, no report.
+    for p in paths {
+        let dir = out.join(scene_name(p));
+        if outputs.contains(&dir) {
+            bail!(
+                "--scenes {}: bench writes that scene's files into {}, where it also writes \
+                 {}; rename the scene file",
+                p.display(),
+                dir.display(),
+                if dir.extension().is_some_and(|e| e == "svg" || e == "png") {
+                    "a scene's plot"
+                } else {
+                    "its report"
+                }
+            );
+        }
+    }
     for o in &outputs {
+        if o.is_dir() {
+            bail!(
+                "--out {}: {} is a folder where bench writes a report or plot",
+                out.display(),
+                o.display()
+            );
+        }
         nppp_files::ensure_not_input("--out", o, inputs).map_err(anyhow::Error::msg)?;
     }
     Ok(())

@@ -17,8 +17,8 @@ use crate::features::INPUT_FEATURES;
 use crate::io::DatasetInfo;
 use crate::model::ModelConfig;
 use crate::model_dir::{
-    Checkpoint, DataFingerprint, check_fresh_out, checkpoint_dir, checkpoint_read_lock,
-    incomplete_checkpoint, no_checkpoint_message, open_checkpoint,
+    Checkpoint, DataFingerprint, check_checkpoint_folders, check_fresh_out, checkpoint_dir,
+    checkpoint_read_lock, incomplete_checkpoint, no_checkpoint_message, open_checkpoint,
 };
 
 /// What `nppp train` was asked for (the CLI's flags, `nppp-cli`'s `TrainArgs`,
@@ -370,6 +370,19 @@ macro_rules! kept_hyperparameters {
 /// command line), else defaults overridden by the command line. On resume,
 /// the checked checkpoint comes with it.
 pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option<Checkpoint>)> {
+    // meta.json records where the data is (bake reads its held-out rays
+    // from there), and JSON holds only UTF-8: such a path failed at the
+    // first checkpoint with "path contains invalid UTF-8 characters",
+    // naming no file.
+    let data_path = std::path::absolute(&opts.data).unwrap_or_else(|_| opts.data.clone());
+    if data_path.to_str().is_none() {
+        bail!(
+            "--data {}: the path is not valid UTF-8 text, and the model records where its \
+             training data is (meta.json, for bake); rename the file or the folder that \
+             holds it",
+            data_path.display()
+        );
+    }
     let mut ckpt = None;
     let mut cfg = if opts.resume {
         if !opts.out.is_dir() {
@@ -390,6 +403,7 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
                 );
                 format!("--resume: {}", no_checkpoint_message(&opts.out, &none))
             })?;
+        check_checkpoint_folders(&opts.out).context("--resume")?;
         let cfg = c.train_config.clone();
         ckpt = Some(c);
         let clash = |name: &str, given: Option<String>, saved: String| -> Result<()> {
@@ -452,6 +466,7 @@ pub(super) fn resolve_config(opts: &TrainOptions) -> Result<(TrainConfig, Option
 /// finished in the folder in between was replaced without `--overwrite`.
 pub(super) fn check_fresh_target(opts: &TrainOptions) -> Result<()> {
     check_fresh_out(&opts.out)?;
+    check_checkpoint_folders(&opts.out)?;
     if checkpoint_dir(&opts.out).is_some() && !opts.overwrite {
         bail!(
             "{} already holds a checkpoint; pass --resume to continue it, --overwrite to \

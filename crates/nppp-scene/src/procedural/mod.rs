@@ -679,8 +679,11 @@ fn menger_sponge(level: u32) -> TriMesh {
 
 /// Writes a plain OBJ (`v x y z`, `f a b c`, 1-based). It goes through a
 /// temporary file in the same folder and a rename, so a reader (or a make
-/// rule checking timestamps) never sees a half-written mesh.
-pub fn write_obj(mesh: &TriMesh, path: &Path) -> std::io::Result<()> {
+/// rule checking timestamps) never sees a half-written mesh. Unless
+/// `replace`, a file that appeared at `path` while the mesh was written
+/// (another export to the same name) is kept, and this one beside it
+/// ([`nppp_files::AtomicFile::commit_new`]).
+pub fn write_obj(mesh: &TriMesh, path: &Path, replace: bool) -> std::io::Result<()> {
     let mut out = nppp_files::AtomicFile::create(path)?;
     writeln!(
         out,
@@ -695,7 +698,11 @@ pub fn write_obj(mesh: &TriMesh, path: &Path) -> std::io::Result<()> {
     for t in &mesh.triangles {
         writeln!(out, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
     }
-    out.commit()
+    if replace {
+        out.commit()
+    } else {
+        out.commit_new()
+    }
 }
 
 /// A triangle count for an error message: the saturated count of absurd

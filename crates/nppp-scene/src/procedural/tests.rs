@@ -341,7 +341,7 @@ fn procedural_write_obj_round_trip() {
     ] {
         let mesh = object.build().unwrap();
         let path = dir.join(format!("{}.obj", object.name()));
-        write_obj(&mesh, &path).unwrap();
+        write_obj(&mesh, &path, true).unwrap();
         assert_eq!(
             parse_obj(&std::fs::read_to_string(&path).unwrap()),
             mesh,
@@ -365,8 +365,23 @@ fn procedural_write_obj_round_trip() {
             .all(|n| n.ends_with(".obj") && !n.starts_with('.')),
         "{names:?}"
     );
-    assert!(write_obj(&TriMesh::default(), &dir.join("missing-dir").join("x.obj")).is_err());
+    assert!(
+        write_obj(
+            &TriMesh::default(),
+            &dir.join("missing-dir").join("x.obj"),
+            true
+        )
+        .is_err()
+    );
     assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 3);
+    // Not told to replace: a file at the path (one that appeared while the
+    // mesh was written: two `nppp mesh` runs to one name) stays, and this
+    // mesh is kept beside it.
+    let hand = dir.join("hand.obj");
+    std::fs::write(&hand, "# by hand\n").unwrap();
+    let e = write_obj(&sphere(3, 5).build().unwrap(), &hand, false).unwrap_err();
+    assert_eq!(e.kind(), std::io::ErrorKind::AlreadyExists);
+    assert_eq!(std::fs::read_to_string(&hand).unwrap(), "# by hand\n");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
