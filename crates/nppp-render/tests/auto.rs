@@ -67,7 +67,11 @@ fn the_decision_is_the_same_at_any_thread_count_and_turns_off_a_losing_estimator
     let one = pilot(&scene, 1);
     let two = pilot(&scene, 2);
     let three = pilot(&scene, 3);
-    for d in [&two, &three] {
+    // More threads than the pilot's image has tiles (64 x 48: twelve): its
+    // sample ranges are cut and rendered at once, and merge exactly.
+    let sixteen = pilot(&scene, 16);
+    let forty = pilot(&scene, 40);
+    for d in [&two, &three, &sixteen, &forty] {
         assert_eq!(d.samples, one.samples);
         assert_eq!(d.pt.rel_var, one.pt.rel_var);
         assert_eq!(d.pt.cost, one.pt.cost);

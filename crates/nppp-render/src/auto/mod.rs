@@ -587,6 +587,45 @@ impl Probe {
     }
 }
 
+/// [`render_film`], cut into sample ranges rendered at once where the
+/// image has fewer tiles than there are threads: the pilot's 32 x 24
+/// pixels are four tiles, which kept 4 of 16 threads busy (`auto` took
+/// 1.13x PT's time on the room at half resolution on a 16-core Xeon, where
+/// PT took 1.04 s). Films of disjoint sample ranges merge into exactly the
+/// film of their union, and the work counted is the same, so the pilot
+/// decides the same on any number of threads.
+fn render_film_on_all_threads(
+    rs: &RenderScene,
+    opts: &RenderOptions,
+    range: std::ops::Range<u32>,
+) -> (Vec<PixelSum>, crate::render::RenderStats) {
+    use rayon::prelude::*;
+    let tile = crate::render::TILE;
+    let tiles = (rs.camera.width.div_ceil(tile) * rs.camera.height.div_ceil(tile)) as usize;
+    let parts = rayon::current_num_threads()
+        .div_ceil(tiles.max(1))
+        .min(range.len())
+        .max(1) as u32;
+    if parts == 1 {
+        return render_film(rs, opts, range);
+    }
+    let n = range.len() as u32;
+    let cut = |k: u32| range.start + n * k / parts;
+    let films: Vec<_> = (0..parts)
+        .into_par_iter()
+        .map(|k| render_film(rs, opts, cut(k)..cut(k + 1)))
+        .collect();
+    let mut films = films.into_iter();
+    let (mut film, mut stats) = films.next().expect("at least one part");
+    for (f, st) in films {
+        for (a, b) in film.iter_mut().zip(&f) {
+            a.merge(b);
+        }
+        stats.merge(&st);
+    }
+    (film, stats)
+}
+
 /// A candidate measured with both pilot halves.
 struct Measured {
     index: usize,
@@ -631,7 +670,7 @@ fn pilot(
     // Samples `range` of a half rendered with `seed`: films of disjoint
     // ranges merge into exactly the film of their union.
     let mut run = |rs: &RenderScene, seed: u64, range: std::ops::Range<u32>| {
-        let (film, st) = render_film(
+        let (film, st) = render_film_on_all_threads(
             rs,
             &RenderOptions {
                 spp: opts.spp,
