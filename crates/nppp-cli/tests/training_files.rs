@@ -783,6 +783,36 @@ fn a_forged_meta_json_is_refused_naming_the_file() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The weights file copied over `optim.bpk`, its checksum forged to
+/// match: Burn read it as an optimizer record holding no state, and the
+/// run resumed with a fresh Adam state without a word.
+#[test]
+fn another_record_in_place_of_the_adam_state_is_refused() {
+    let dir = scratch("forged-optim");
+    let (data, model) = trained(&dir);
+    let ckpt = model.join("checkpoint");
+    let weights = std::fs::read(ckpt.join("model.bpk")).unwrap();
+    std::fs::write(ckpt.join("optim.bpk"), &weights).unwrap();
+    let sp = ckpt.join("state.json");
+    let mut st: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&sp).unwrap()).unwrap();
+    for f in st["files"].as_array_mut().unwrap() {
+        if f["name"] == "optim.bpk" {
+            f["bytes"] = weights.len().into();
+            f["crc32"] = common::crc32(&weights).into();
+        }
+    }
+    std::fs::write(&sp, serde_json::to_string_pretty(&st).unwrap()).unwrap();
+    let mut args = small_train(&data, &model, "2");
+    args.push("--resume".as_ref());
+    assert_error(
+        "weights as Adam state",
+        &nppp(&args),
+        &["optim.bpk", "not this model's Adam state"],
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Training data under a path that is not UTF-8: the model records the
 /// path in JSON, which cannot hold it; the run failed at its first
 /// checkpoint with "path contains invalid UTF-8 characters", naming no

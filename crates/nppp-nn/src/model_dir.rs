@@ -515,9 +515,13 @@ fn first_mismatch(message: &str) -> String {
 }
 
 /// Loads the Adam state of a checked checkpoint into `optim`.
-pub fn load_optimizer(ckpt: &Checkpoint, optim: ModuleOptimizer) -> Result<ModuleOptimizer> {
+pub fn load_optimizer(
+    ckpt: &Checkpoint,
+    optim: ModuleOptimizer,
+    model: &NpppModel,
+) -> Result<ModuleOptimizer> {
     let path = ckpt.dir.join(files::OPTIMIZER);
-    no_panic(&format!("loading {}", path.display()), || {
+    let optim = no_panic(&format!("loading {}", path.display()), || {
         optim.load(&path).map_err(|e| {
             anyhow::anyhow!(
                 "loading {}: {e} (the Adam state is damaged or from another model: resume \
@@ -525,7 +529,23 @@ pub fn load_optimizer(ckpt: &Checkpoint, optim: ModuleOptimizer) -> Result<Modul
                 path.display()
             )
         })
-    })
+    })?;
+    // Burn loads any record it can parse and starts the parameters it
+    // finds no state for afresh: the weights file copied over this one
+    // (its checksum forged to match) resumed with a fresh Adam state,
+    // silently. Every parameter has its moments once a step is done.
+    let states = optim.to_record().len();
+    let params = burn::module::list_param_ids(model).len();
+    if ckpt.state.step > 0 && states < params {
+        bail!(
+            "{}: holds optimizer state for {states} tensors, and the model has {params} \
+             parameters after {} steps: it is not this model's Adam state (resume cannot go on \
+             from it); retrain with --overwrite",
+            path.display(),
+            ckpt.state.step
+        );
+    }
+    Ok(optim)
 }
 
 /// Whether `name`, in a model directory, is something `nppp train` writes:

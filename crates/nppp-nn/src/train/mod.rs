@@ -208,7 +208,7 @@ fn train_on(
             );
         }
         let model = load_weights(&ckpt, &ad)?;
-        let optim = load_optimizer(&ckpt, make_optimizer(&cfg))?;
+        let optim = load_optimizer(&ckpt, make_optimizer(&cfg), &model)?;
         (model, optim, state, ckpt.meta, ckpt.log)
     } else {
         let mut meta = ModelMeta::new(info.clone(), data.transform.clone(), opts.data.clone());
