@@ -375,10 +375,13 @@ fn exit_ray_hit(
 ) -> Option<SceneHit> {
     let h = hit?;
     let instance = path.skip_instance;
-    let est = scene
+    let Some(est) = scene
         .estimators
         .as_ref()
-        .and_then(|e| e.per_instance()[instance as usize].map(|i| &e.list[i as usize]))?;
+        .and_then(|e| e.per_instance()[instance as usize].map(|i| &e.list[i as usize]))
+    else {
+        return Some(h);
+    };
     let x = &scene.accel.instances[instance as usize];
     // In the object's space (its rotation keeps the direction unit; its
     // scale divides distances).
