@@ -123,7 +123,7 @@ fn render_memory_problem_within(
              about {RENDER_BYTES_PER_TRIANGLE} bytes each: the meshes, their trees and the merged \
              copies; {} for the instances; {} for the image{}), more than the {} of memory \
              available: use fewer or coarser meshes (instances of one mesh share its \
-             triangles), fewer instances, a smaller image{}",
+             triangles), fewer instances or a smaller image{}",
             nppp_files::format_bytes(need),
             nppp_files::format_bytes(parts[0]),
             nppp_files::format_bytes(parts[1]),
@@ -139,7 +139,7 @@ fn render_memory_problem_within(
             },
             nppp_files::format_bytes(available),
             if estimator_bytes > 0 {
-                " or --estimators off"
+                ", or render with --estimators off"
             } else {
                 ""
             }
@@ -471,7 +471,7 @@ mod tests {
         let msg = render_memory_problem_within(&scene, px, 1000, 137_471).unwrap();
         assert!(
             msg.contains("3.91 KiB for 1000 B of estimator files")
-                && msg.contains("or --estimators off"),
+                && msg.contains("or render with --estimators off"),
             "{msg}"
         );
     }
