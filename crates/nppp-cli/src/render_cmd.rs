@@ -1,7 +1,7 @@
 //! `nppp render`.
 
 use anyhow::{Context, Result, bail};
-use clap::{Args, ValueEnum};
+use clap::Args;
 use nppp_render::estimator::{
     EntryMask, EntryNee, EstimatorMode, EstimatorModel, Estimators, LatentLookup,
 };
@@ -488,9 +488,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             "--entry-nee {} needs an estimator that answers its entries (--estimators neural \
              or oracle): the cost floor and free exits trace and decode nothing at an entry, \
              so they take no next-event estimation through it (give --entry-nee off)",
-            a.entry_nee
-                .to_possible_value()
-                .map_or_else(String::new, |v| v.get_name().to_string())
+            flag_spelling(&a.entry_nee)
         );
     }
     if a.decoder != DecoderChoice::Cpu {
@@ -816,12 +814,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             // holds for all (auto chooses per estimator, said above).
             match a.estimators {
                 EstimatorChoice::Auto => "auto, P per estimator as chosen".to_string(),
-                other => format!(
-                    "{}, P = {}",
-                    clap::ValueEnum::to_possible_value(&other)
-                        .map_or_else(String::new, |v| v.get_name().to_string()),
-                    e.min_bounces
-                ),
+                other => format!("{}, P = {}", flag_spelling(&other), e.min_bounces),
             },
             st.entries,
             st.mask_skips,
@@ -970,6 +963,13 @@ pub fn check_pixels_memory(width: u32, height: u32, per_pixel: u64, what: &str) 
     Ok(())
 }
 
+/// A flag's value as the command line spells it (`picked`, not Rust's
+/// `PickedVertex`), for messages and render parts' settings.
+fn flag_spelling<T: clap::ValueEnum>(v: &T) -> String {
+    v.to_possible_value()
+        .map_or_else(String::new, |p| p.get_name().to_string())
+}
+
 /// What a render part's image depends on beyond the scene's content and the
 /// numbers in its header: the estimator options as used, each estimator
 /// file's content, and `auto`'s decision. Parts must agree on all of it.
@@ -980,18 +980,14 @@ fn part_settings(
     auto_choices: Option<String>,
 ) -> Result<std::collections::BTreeMap<String, String>> {
     // Values as their flags spell them (a mismatch is reported with them).
-    fn flag<T: clap::ValueEnum>(v: &T) -> String {
-        v.to_possible_value()
-            .map_or_else(String::new, |p| p.get_name().to_string())
-    }
     let mut m = std::collections::BTreeMap::new();
-    m.insert("estimators".into(), flag(&a.estimators));
+    m.insert("estimators".into(), flag_spelling(&a.estimators));
     if let Some(e) = &rs.estimators {
         m.insert("P".into(), e.min_bounces.to_string());
-        m.insert("entry_nee".into(), flag(&a.entry_nee));
-        m.insert("latent_lookup".into(), flag(&a.latent_lookup));
-        m.insert("entry_mask".into(), flag(&a.entry_mask));
-        m.insert("decoder".into(), flag(&a.decoder));
+        m.insert("entry_nee".into(), flag_spelling(&a.entry_nee));
+        m.insert("latent_lookup".into(), flag_spelling(&a.latent_lookup));
+        m.insert("entry_mask".into(), flag_spelling(&a.entry_mask));
+        m.insert("decoder".into(), flag_spelling(&a.decoder));
     }
     if let Some(c) = auto_choices {
         m.insert("auto".into(), c);

@@ -846,6 +846,13 @@ pub enum EstimatorLoadError {
     },
 }
 
+/// Which file an `estimator` key names: one file under any spelling (`m/x`,
+/// `./m/x`, a link) is one estimator (four spellings of the knot's file
+/// were loaded four times, 65 MiB for 16, and decided on apart by `auto`).
+pub(crate) fn estimator_file_key(path: &std::path::Path) -> std::path::PathBuf {
+    std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf())
+}
+
 /// Whether instance `ii` is a lamp. A path that reaches an emitter ends
 /// there, so an estimator has nothing to skip; and the light a lamp's
 /// estimator would return is light the vertex before the entry has already
@@ -918,11 +925,7 @@ impl Estimators {
                 // Traced for real: see `unused_on_emitters`.
                 continue;
             }
-            // One file under any spelling (`m/x`, `./m/x`, a link) is one
-            // estimator: four spellings of the knot's file were loaded four
-            // times (65 MiB for 16) and decided on apart by `auto`.
-            let file = std::fs::canonicalize(path).unwrap_or_else(|_| path.clone());
-            let key = (file, inst.mesh, inst.material);
+            let key = (estimator_file_key(path), inst.mesh, inst.material);
             if let Some(&e) = by_key.get(&key) {
                 per_instance[ii] = Some(e);
                 continue;

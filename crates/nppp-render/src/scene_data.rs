@@ -76,7 +76,7 @@ fn estimator_file_bytes(scene: &Scene, mode: crate::estimator::EstimatorMode) ->
         .enumerate()
         .filter(|&(ii, _)| !crate::estimator::on_emitter(scene, ii))
         .filter_map(|(_, inst)| inst.estimator.as_ref())
-        .map(|p| std::fs::canonicalize(p).unwrap_or_else(|_| p.clone()))
+        .map(|p| crate::estimator::estimator_file_key(p))
         .collect();
     files
         .iter()
