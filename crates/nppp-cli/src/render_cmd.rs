@@ -809,7 +809,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
     if let Some(e) = &rs.estimators {
         let st = &stats.estimators;
         nppp_files::note!(
-            "estimators ({}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {}, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped{}",
+            "estimators ({}): {} entries, {} mask skips, {} ambiguous rays traced for real, {} exits past M, {} exits from the object (other geometry in its sphere), {}, {} decoder fallbacks, {} shared; repairs: {} degenerate, {} inward, {} clamped{}",
             // As the flag spells it (it printed `Auto`), and P where one P
             // holds for all (auto chooses per estimator, said above).
             match a.estimators {
@@ -820,6 +820,7 @@ pub fn run(a: &RenderArgs) -> Result<()> {
             st.mask_skips,
             st.ambiguous,
             st.over_max_bounces,
+            st.exits_from_object,
             decoder_batches(st, e),
             st.decoder_fallbacks,
             nppp_files::format_bytes(e.memory_bytes() as u64),

@@ -108,6 +108,28 @@ impl Blas {
     pub fn occluded(&self, o: Vec3A, d: Vec3A, tmin: f32, tmax: f32) -> bool {
         self.bvh.occluded(o, d, tmin, tmax)
     }
+
+    /// The corners of each triangle that reaches inside the ball of
+    /// `center` and `radius` (object space), to `f`. For building scenes.
+    pub fn for_each_triangle_in_ball(
+        &self,
+        center: Vec3,
+        radius: f32,
+        mut f: impl FnMut([Vec3; 3]),
+    ) {
+        let r2 = radius * radius;
+        self.bvh.visit_triangles(
+            |lo, hi| center.clamp(lo, hi).distance_squared(center) <= r2,
+            |[a, b, c]| {
+                let (p, _, _) =
+                    nppp_geom::closest_point::closest_point_on_triangle(center, a, b, c);
+                if p.distance_squared(center) <= r2 {
+                    f([a, b, c]);
+                }
+                true
+            },
+        );
+    }
 }
 
 /// An instance as the traversal needs it: the inverse transform precomputed.
@@ -415,6 +437,43 @@ impl Accel {
                 }
             });
         blocked
+    }
+
+    /// The world box of the geometry of every instance but `skip` inside
+    /// the ball of `center` and `radius` (world space), each triangle's
+    /// box cut to the ball's; `None` where there is none. For building
+    /// scenes: the merged BLAS and the BLAS of each instanced instance
+    /// whose box meets the ball are searched by their BVHs.
+    pub fn geometry_box_in_ball(
+        &self,
+        skip: usize,
+        center: Vec3,
+        radius: f32,
+    ) -> Option<(Vec3, Vec3)> {
+        let ball_box = (center - Vec3::splat(radius), center + Vec3::splat(radius));
+        let mut found: Option<(Vec3, Vec3)> = None;
+        let mut add = |[a, b, c]: [Vec3; 3]| {
+            let lo = a.min(b).min(c).max(ball_box.0);
+            let hi = a.max(b).max(c).min(ball_box.1);
+            found = Some(found.map_or((lo, hi), |(l, h)| (l.min(lo), h.max(hi))));
+        };
+        if let Some(merged) = &self.merged {
+            merged.for_each_triangle_in_ball(center, radius, &mut add);
+        }
+        for &i in &self.tlas_items {
+            let (lo, hi) = self.instance_bounds[i as usize];
+            if i as usize == skip || center.clamp(lo, hi).distance_squared(center) > radius * radius
+            {
+                continue;
+            }
+            let x = &self.instances[i as usize];
+            self.blas[x.blas as usize].for_each_triangle_in_ball(
+                x.point_to_object(center),
+                radius * x.inv_scale,
+                |t| add(t.map(|p| x.point_to_world(p))),
+            );
+        }
+        found
     }
 
     /// Whether instance `i` was merged into the world BLAS (and so cannot be

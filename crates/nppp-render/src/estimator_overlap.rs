@@ -25,8 +25,10 @@
 //! a glass box standing exactly on one, keeps its estimator whatever the
 //! floor's triangulation. Geometry around the hull (a room, a glass case,
 //! a floor below the object that cuts its bounding sphere) is left to the
-//! exit rule (exit rays start from the plane through the sphere's centre)
-//! and to the ambiguous-chord test, as before.
+//! exit rule and to the ambiguous-chord test: [`find_other_geometry_in_spheres`]
+//! boxes what lies inside each sphere, and an exit ray whose line meets
+//! that box near the object starts at the object's last crossing of the
+//! line instead of the thesis' plane through the sphere's centre.
 
 use crate::accel::{Accel, InstanceXform, mapped_box};
 use crate::estimator::Estimators;
@@ -435,6 +437,40 @@ pub fn find_obstructed(scene: &Scene, accel: &Accel, ests: &Estimators) -> Vec<O
                         && obstructs(&cache, i, j)
                 })
                 .map(|other| Obstruction { instance: i, other })
+        })
+        .collect()
+}
+
+/// Per instance: the world box around the other instances' geometry
+/// inside the sphere of the estimator the instance uses (`None` for
+/// instances without one, and where nothing else is inside). Such
+/// geometry is outside the object's convex hull ([`find_obstructed`]
+/// releases the rest), but can lie on an exit line between the object
+/// and the chord's middle, where the thesis' rule starts the exit ray: a
+/// tube lying on a floor, a knot's sphere cutting the floor below it. An
+/// exit line that meets this box near the object starts at the object's
+/// last crossing instead (`Estimators::exit_origin`). Only instances
+/// whose world boxes meet the sphere are tested, triangle by triangle, so
+/// an estimator in open space costs one box test per instance. The box is
+/// padded by 1e-4 of the sphere's radius, far above the rounding of the
+/// tests that use it.
+pub fn find_other_geometry_in_spheres(
+    scene: &Scene,
+    accel: &Accel,
+    ests: &Estimators,
+) -> Vec<Option<(Vec3, Vec3)>> {
+    use rayon::prelude::*;
+    (0..scene.instances.len())
+        .into_par_iter()
+        .map(|i| {
+            let e = ests.per_instance()[i]?;
+            let sphere = ests.list[e as usize].sphere;
+            let x = &accel.instances[i];
+            let (c, r) = (x.point_to_world(sphere.center), sphere.radius * x.scale);
+            let pad = Vec3::splat(r * 1e-4);
+            accel
+                .geometry_box_in_ball(i, c, r)
+                .map(|(lo, hi)| (lo - pad, hi + pad))
         })
         .collect()
 }

@@ -22,7 +22,7 @@
 use crate::accel::SceneHit;
 use crate::bsdf::Bsdf;
 use crate::entry::EntryBatch;
-use crate::estimator::{EntryNee, EstimatorStats, Meet, SkippedVertices};
+use crate::estimator::{EntryNee, Estimator, EstimatorStats, Estimators, Meet, SkippedVertices};
 use crate::film::PixelSum;
 use crate::medium::HeroChannel;
 use crate::path::{MediumVisit, PathState};
@@ -254,15 +254,10 @@ impl Wavefront {
                     .plain()
                     .intersect(p.origin, p.dir, f32::INFINITY)
                     .map_or(Meet::Nothing, Meet::Surface),
-                _ => {
-                    let hit = scene.accel.intersect_skipping(
-                        p.origin,
-                        p.dir,
-                        f32::INFINITY,
-                        p.skip_instance,
-                    );
-                    exit_ray_hit(scene, p, hit).map_or(Meet::Nothing, Meet::Surface)
-                }
+                _ => scene
+                    .accel
+                    .intersect_skipping(p.origin, p.dir, f32::INFINITY, p.skip_instance)
+                    .map_or(Meet::Nothing, Meet::Surface),
             }
         }));
     }
@@ -311,7 +306,8 @@ impl Wavefront {
                 settings,
                 path,
                 entry.instance,
-                &est.sphere,
+                ests,
+                est,
                 &exit,
                 &self.batch.skipped[k],
                 &mut self.estimator_stats,
@@ -353,80 +349,19 @@ fn light_skipped_vertex(
         path.beta * v.beta * sample_ld_weighted(scene, bsdf, &vertex, u_light, u_light2, mis, work);
 }
 
-/// The first hit of an exit ray (`path` has just left instance
-/// `path.skip_instance` through its estimator), `hit` as traced from the
-/// ray's start. The exit ray starts at its chord's midpoint (the thesis'
-/// rule, [`follow_exit`]), which can lie behind other geometry inside the
-/// sphere: an exit from a tube's mouth just above the floor the tube lies
-/// on, rising slightly, started under the floor and was stopped by it (the
-/// oracle rendered such a tube 2.3% dark, where PT and Mitsuba 3 agree).
-/// Where the hit lies inside the sphere, the object itself decides: an
-/// exit leaves from the last point where its line crosses the object (a
-/// walk ends when its ray meets the object no more), so geometry before
-/// that point is behind the exit, and the ray starts again from there
-/// (`path.origin` moves). Exact for the oracle; a network's exit takes the
-/// same rule on its predicted line. The common case, a hit outside the
-/// sphere, costs one sphere test; the rare one a query of the object's
-/// own BVH.
-fn exit_ray_hit(
-    scene: &RenderScene,
-    path: &mut PathState,
-    hit: Option<SceneHit>,
-) -> Option<SceneHit> {
-    let h = hit?;
-    let instance = path.skip_instance;
-    let Some(est) = scene
-        .estimators
-        .as_ref()
-        .and_then(|e| e.per_instance()[instance as usize].map(|i| &e.list[i as usize]))
-    else {
-        return Some(h);
-    };
-    let x = &scene.accel.instances[instance as usize];
-    // In the object's space (its rotation keeps the direction unit; its
-    // scale divides distances).
-    let o = x.point_to_object(path.origin);
-    let d = x.dir_to_object(path.dir);
-    let t_hit = h.t * x.inv_scale;
-    let oc = o - est.sphere.center;
-    let b = oc.dot(d);
-    let disc = b * b - (oc.length_squared() - est.sphere.radius * est.sphere.radius);
-    if disc <= 0.0 {
-        return Some(h);
-    }
-    let t_out = -b + disc.sqrt();
-    if t_hit >= t_out {
-        return Some(h);
-    }
-    // The object's last crossing of the line: the first hit looking back
-    // from where the line leaves the sphere.
-    let from = o + d * t_out;
-    let Some(back) = scene.accel.blas[est.mesh].intersect(from.into(), (-d).into(), 0.0, t_out)
-    else {
-        return Some(h);
-    };
-    let t_exit = t_out - back.t;
-    if t_hit >= t_exit {
-        return Some(h);
-    }
-    path.origin += path.dir * (t_exit * x.scale);
-    scene
-        .accel
-        .intersect_skipping(path.origin, path.dir, f32::INFINITY, instance)
-}
-
-/// Continues a path from an estimator exit. The exit ray starts from the exit
-/// point moved back along its direction to the plane through the sphere's
-/// centre (the thesis' rule); the instance itself is skipped by the next
-/// intersection, and geometry inside the sphere behind the object's last
-/// crossing of the exit line by [`exit_ray_hit`].
+/// Continues a path from an estimator exit. The exit ray starts on the
+/// exit line where [`Estimators::exit_origin`] says (the middle of its
+/// chord, or the object's last crossing where the line meets other
+/// geometry inside the sphere near the object); the instance itself is
+/// skipped by the next intersection.
 #[allow(clippy::too_many_arguments)]
 fn follow_exit(
     scene: &RenderScene,
     s: &IntegratorSettings,
     path: &mut PathState,
     instance: u32,
-    sphere: &nppp_geom::BoundingSphere,
+    ests: &Estimators,
+    est: &Estimator,
     e: &nppp_estimator::Exit,
     skipped: &SkippedVertices,
     stats: &mut EstimatorStats,
@@ -449,8 +384,7 @@ fn follow_exit(
         return Next::Terminate;
     }
     let x = &scene.accel.instances[instance as usize];
-    let origin_unit = e.position - e.direction * e.position.dot(e.direction);
-    path.origin = x.point_to_world(sphere.from_unit_point(origin_unit));
+    path.origin = x.point_to_world(ests.exit_origin(&scene.accel, instance, est, e, stats));
     path.dir = x.dir_to_world(e.direction).normalize();
     match skipped.last {
         // The light at the skipped vertices was the light sample's alone:

@@ -211,6 +211,9 @@ impl RenderScene {
         let mut rs = Self::build(scene, estimators.is_some());
         if let Some(ests) = &mut estimators {
             rs.obstructed = rs.release_obstructed(scene, ests);
+            ests.set_other_geometry_in_spheres(
+                crate::estimator_overlap::find_other_geometry_in_spheres(scene, &rs.accel, ests),
+            );
         }
         // Every instance released: a plain render.
         rs.estimators = estimators.filter(|e| e.any_in_use());

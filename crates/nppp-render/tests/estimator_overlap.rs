@@ -273,3 +273,62 @@ proptest::proptest! {
         proptest::prop_assert_eq!(released, expect, "d {} r1 {} r2 {} scale {}: {}", d, r1, r2, scale, json);
     }
 }
+
+/// Geometry outside the object's hull but inside its estimator's sphere
+/// (a floor just under a ball) is boxed in world space for the exit rule
+/// (`Estimators::exit_origin`), at any place and turn of the instance;
+/// geometry outside the sphere is not.
+#[test]
+fn other_geometry_inside_an_estimators_sphere_is_boxed_for_its_exits() {
+    let boxed = |json: &str| {
+        let scene = scene_from_str(json);
+        let rs = RenderScene::with_estimators(&scene, EstimatorMode::Oracle, 0).unwrap();
+        assert!(rs.obstructed.is_empty());
+        rs.estimators.unwrap().other_geometry_in_sphere(0)
+    };
+    let floor = |y: f32| {
+        format!(r#"{{"quad": [[-50, {y}, -50], [-50, {y}, 50], [50, {y}, 50], [50, {y}, -50]]}}"#)
+    };
+    // The ball's sphere has radius 1.01 (`SPHERE_MARGIN`).
+    for (transform, centre, scale) in [
+        ("{}", [0.0, 0.0, 0.0], 1.0),
+        (
+            r#"{"rotate": {"axis": [1, 2, 3], "deg": 40}, "scale": 2, "translate": [30, 0, -7]}"#,
+            [30.0, 0.0, -7.0],
+            2.0,
+        ),
+    ] {
+        let y = -1.005 * scale;
+        let b = boxed(&placed(BALL, WHITE, transform, &floor(y), WHITE))
+            .unwrap_or_else(|| panic!("{transform}: the floor in the sphere is not found"));
+        let r = 1.01 * scale;
+        // The floor's disc in the sphere: flat at y, within the sphere's box.
+        assert!(
+            b.0.y <= y && b.1.y >= y && b.1.y - b.0.y < 1e-3 * r,
+            "{transform}: {b:?}"
+        );
+        for k in [0, 2] {
+            assert!(
+                b.0[k] >= centre[k] - r * 1.001 && b.1[k] <= centre[k] + r * 1.001,
+                "{transform}: {b:?}"
+            );
+            // The disc is the sphere's section 0.005 above its bottom.
+            let half = (r * r - y * y).sqrt();
+            assert!(
+                b.0[k] <= centre[k] - half * 0.99 && b.1[k] >= centre[k] + half * 0.99,
+                "{transform}: {b:?}"
+            );
+        }
+        assert_eq!(
+            boxed(&placed(
+                BALL,
+                WHITE,
+                transform,
+                &floor(-1.02 * scale),
+                WHITE
+            )),
+            None,
+            "{transform}"
+        );
+    }
+}

@@ -396,13 +396,13 @@ fn sphere_cutting_the_floor_and_camera_inside_the_sphere_match_path_tracing() {
 }
 
 /// The tube lying on a floor, lit by a small lamp beside one mouth (an
-/// unseen layout of an independent check, 2026-11-28). An exit ray starts
-/// at its chord's midpoint; an exit from the mouth just above the floor,
-/// rising slightly towards the lamp, started under the floor and was
-/// stopped by it: the oracle at P = 1 rendered 2.3% dark (z = -17 over
-/// four seeds), where PT and Mitsuba 3 agree. Geometry inside the sphere
-/// before the object's last crossing of the exit line is now behind the
-/// exit (`exit_ray_hit`).
+/// unseen layout of an independent check, 2026-11-28). An exit ray
+/// started at its chord's midpoint; an exit from the mouth just above the
+/// floor, rising slightly towards the lamp, started under the floor and
+/// was stopped by it: the oracle at P = 1 rendered 2.3% dark (z = -17 over
+/// four seeds), where PT and Mitsuba 3 agree. An exit ray whose line
+/// meets other geometry inside the sphere near the object now starts at
+/// the object's last crossing of the line (`Estimators::exit_origin`).
 #[test]
 fn exits_of_an_object_lying_on_the_floor_are_not_stopped_by_it() {
     let json = format!(
@@ -433,5 +433,59 @@ fn exits_of_an_object_lying_on_the_floor_are_not_stopped_by_it() {
         d * 100.0,
         or.mean(),
         pt.mean()
+    );
+}
+
+/// The same tube and floor seen from the other side, at P = 0 and M = 2
+/// (the independent check's layout). Exits from the tube's outside falling
+/// to the floor started at their chord's midpoint, under the floor, and
+/// missed it: the light the floor sends on to the camera's tube points
+/// was lost, and a block beside the lit mouth rendered at 0.41 of PT's
+/// brightness (z = -30 over two seeds) while the image mean was right
+/// within 0.2%. They now start at the tube's last crossing of their line.
+#[test]
+fn exits_falling_to_the_floor_an_object_lies_on_reach_the_floor() {
+    let json = format!(
+        r#"{{
+  "camera": {{"position": [1.2, 1.6, -2.6], "look_at": [0, 0, 0.6], "fov_y_deg": 35, "width": 48, "height": 36}},
+  "materials": {{"tube": {{"type": "diffuse", "albedo": [0.9, 0.9, 0.9]}}, "grey": {{"type": "diffuse", "albedo": [0.6, 0.6, 0.6]}},
+                 "lamp": {{"type": "emitter", "radiance": [60, 50, 30]}}}},
+  "meshes": {{
+    "tube": {{"obj": "{}"}},
+    "floor": {{"quad": [[-4, -0.25, 4], [4, -0.25, 4], [4, -0.25, -4], [-4, -0.25, -4]]}},
+    "lamp": {{"quad": [[-2, -0.1, 0.1], [-2, 0.3, 0.1], [-2, 0.3, 0.5], [-2, -0.1, 0.5]]}}
+  }},
+  "instances": [
+    {{"mesh": "floor", "material": "grey"}},
+    {{"mesh": "lamp", "material": "lamp"}},
+    {{"mesh": "tube", "material": "tube", "estimator": "no-file-needed-for-the-oracle.nppp"}}
+  ]
+}}"#,
+        repo_root().join("data/meshes/tube.obj").display()
+    );
+    let (pt, _) = render_mode(&json, EstimatorMode::Off, 0, 512, 2, 1);
+    let (or, st) = render_mode(&json, EstimatorMode::Oracle, 0, 512, 2, 2);
+    assert!(st.estimators.entries > 10_000, "{:?}", st.estimators);
+    // The 8 x 8 block of the full-size image, at half its size.
+    let block = |img: &nppp_render::Image| {
+        let mut s = 0.0f64;
+        for y in 16..20 {
+            for x in 40..44 {
+                s += img.get(x, y).iter().map(|v| *v as f64).sum::<f64>();
+            }
+        }
+        s
+    };
+    let (a, b) = (block(&or), block(&pt));
+    assert!(
+        (a / b - 1.0).abs() < 0.15,
+        "the block beside the lit mouth: oracle {a:.4} vs PT {b:.4}"
+    );
+    let d = rel_diff(or.mean(), pt.mean());
+    assert!(d < 0.01, "image mean differs by {:.2}%", d * 100.0);
+    assert!(
+        st.estimators.exits_from_object > 1_000,
+        "{:?}",
+        st.estimators
     );
 }

@@ -86,6 +86,62 @@ proptest! {
         }
     }
 
+    /// A region query visits every triangle whose box the region meets,
+    /// each once (corners within rounding of the mesh's), and stops when
+    /// told to.
+    #[test]
+    fn triangle_visits_find_every_triangle_in_a_region(seed in 0u64..1000, n in 1usize..300) {
+        let tris = soup(seed, n);
+        let bvh = MeshBvh::build(&tris);
+        let mut rng = nppp_geom::SampleRng::from_seed(seed ^ 0x5eed);
+        let c = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 12.0 - 1.0;
+        let r = rng.uniform() * 4.0;
+        let meets = |lo: Vec3, hi: Vec3| c.clamp(lo, hi).distance_squared(c) <= r * r;
+        let tri_box = |t: &Triangle| {
+            let (a, b, q) = (Vec3::from(t.v0), Vec3::from(t.v1), Vec3::from(t.v2));
+            (a.min(b).min(q), a.max(b).max(q))
+        };
+        let mut want: Vec<[f32; 3]> = tris
+            .iter()
+            .filter(|t| {
+                let (lo, hi) = tri_box(t);
+                meets(lo, hi)
+            })
+            .map(|t| Vec3::from(t.v0).to_array())
+            .collect();
+        let mut got = Vec::new();
+        bvh.visit_triangles(meets, |[a, b, q]| {
+            got.push((a, b, q));
+            true
+        });
+        // Every triangle in the region is visited, once.
+        let mut firsts: Vec<[f32; 3]> = got.iter().map(|(a, _, _)| a.to_array()).collect();
+        let key = |v: &[f32; 3]| (v[0].to_bits(), v[1].to_bits(), v[2].to_bits());
+        want.sort_by_key(key);
+        firsts.sort_by_key(key);
+        for w in &want {
+            prop_assert!(firsts.binary_search_by_key(&key(w), key).is_ok(), "missed {w:?}");
+        }
+        let mut unique = firsts.clone();
+        unique.dedup();
+        prop_assert_eq!(unique.len(), firsts.len());
+        // Each visited triangle is one of the mesh's, corners within rounding.
+        for (a, b, q) in &got {
+            let known = tris.iter().any(|t| {
+                Vec3::from(t.v0) == *a
+                    && Vec3::from(t.v1).distance(*b) < 1e-5
+                    && Vec3::from(t.v2).distance(*q) < 1e-5
+            });
+            prop_assert!(known, "{a} {b} {q} is no triangle of the mesh");
+        }
+        let mut calls = 0;
+        bvh.visit_triangles(|_, _| true, |_| {
+            calls += 1;
+            calls < 3
+        });
+        prop_assert_eq!(calls, n.min(3));
+    }
+
     /// The TLAS visits every item whose box the ray enters, and only
     /// boxes the ray can enter.
     #[test]
