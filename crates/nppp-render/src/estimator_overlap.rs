@@ -419,7 +419,8 @@ pub fn release(ests: &mut Estimators, obstructed: &[Obstruction]) {
 /// Every instance that uses an estimator whose object's convex hull holds
 /// geometry of another instance (see the module's doc), with the first
 /// such other instance. Instances are tested against those whose world
-/// boxes overlap theirs, so a scene of many separate objects costs little.
+/// boxes overlap theirs (found by the TLAS), so a scene of many separate
+/// objects costs little.
 pub fn find_obstructed(scene: &Scene, accel: &Accel, ests: &Estimators) -> Vec<Obstruction> {
     use rayon::prelude::*;
     let cache = MeshCache::new(scene, accel);
@@ -429,13 +430,10 @@ pub fn find_obstructed(scene: &Scene, accel: &Accel, ests: &Estimators) -> Vec<O
         .filter(|&i| ests.per_instance()[i].is_some())
         .filter_map(|i| {
             let bi = accel.instance_bounds[i];
-            (0..scene.instances.len())
-                .find(|&j| {
-                    j != i
-                        && boxes_overlap(bi, accel.instance_bounds[j])
-                        && cache.spheres_meet(i, j)
-                        && obstructs(&cache, i, j)
-                })
+            accel
+                .instances_meeting(|lo, hi| boxes_overlap(bi, (lo, hi)))
+                .into_iter()
+                .find(|&j| j != i && cache.spheres_meet(i, j) && obstructs(&cache, i, j))
                 .map(|other| Obstruction { instance: i, other })
         })
         .collect()

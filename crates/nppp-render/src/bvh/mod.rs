@@ -521,44 +521,30 @@ impl MeshBvh {
 
     /// Calls `f` with the corners of each triangle under the boxes `keep`
     /// accepts (`keep(lo, hi)`, the BVH's space), until `f` returns false.
-    /// A region query for building scenes, not for rays: it allocates its
-    /// stack. The corners are the packets' (`v0`, `v0 + e1`, `v0 + e2`),
-    /// within rounding of the mesh's.
+    /// A region query for building scenes, not for rays. The corners are
+    /// the packets' (`v0`, `v0 + e1`, `v0 + e2`), within rounding of the
+    /// mesh's.
     pub fn visit_triangles(
         &self,
         keep: impl Fn(Vec3, Vec3) -> bool,
         mut f: impl FnMut([Vec3; 3]) -> bool,
     ) {
-        if self.tree.root == EMPTY {
-            return;
-        }
-        let mut stack = vec![self.tree.root];
-        while let Some(code) = stack.pop() {
-            if code & LEAF != 0 {
-                for p in &self.packets[leaf_items(code)] {
-                    for lane in 0..4 {
-                        let v = |a: &[Vec4; 3]| Vec3::new(a[0][lane], a[1][lane], a[2][lane]);
-                        let (v0, e1, e2) = (v(&p.v0), v(&p.e1), v(&p.e2));
-                        // An unused lane (and a point, which no ray hits).
-                        if e1 == Vec3::ZERO && e2 == Vec3::ZERO {
-                            continue;
-                        }
-                        if !f([v0, v0 + e1, v0 + e2]) {
-                            return;
-                        }
+        self.tree.visit_leaves(keep, |leaf| {
+            for p in &self.packets[leaf] {
+                for lane in 0..4 {
+                    let v = |a: &[Vec4; 3]| Vec3::new(a[0][lane], a[1][lane], a[2][lane]);
+                    let (v0, e1, e2) = (v(&p.v0), v(&p.e1), v(&p.e2));
+                    // An unused lane (and a point, which no ray hits).
+                    if e1 == Vec3::ZERO && e2 == Vec3::ZERO {
+                        continue;
+                    }
+                    if !f([v0, v0 + e1, v0 + e2]) {
+                        return false;
                     }
                 }
-                continue;
             }
-            let n = &self.tree.nodes[code as usize];
-            for c in 0..NODE_WIDTH {
-                let lo = Vec3::new(n.lo[0][c], n.lo[1][c], n.lo[2][c]);
-                let hi = Vec3::new(n.hi[0][c], n.hi[1][c], n.hi[2][c]);
-                if n.child[c] != EMPTY && keep(lo, hi) {
-                    stack.push(n.child[c]);
-                }
-            }
-        }
+            true
+        });
     }
 
     /// Memory of nodes and triangle packets, in bytes.
@@ -588,6 +574,17 @@ impl InstanceBvh {
             })
         };
         Self { tree, items }
+    }
+
+    /// Calls `f` with each item whose box `keep` accepts (`keep(lo, hi)`;
+    /// every box above it must pass too, so `keep` should accept a box
+    /// whenever it accepts one inside it). A region query for building
+    /// scenes, not for rays.
+    pub fn visit_items(&self, keep: impl Fn(Vec3, Vec3) -> bool, mut f: impl FnMut(u32)) {
+        self.tree.visit_leaves(keep, |leaf| {
+            self.items[leaf].iter().for_each(|&i| f(i));
+            true
+        });
     }
 
     /// Calls `visit(item, tmax)` for the items whose boxes the ray (unit
@@ -649,6 +646,38 @@ impl Tree {
             nodes: HugeArray::new(vec![]),
             root: EMPTY,
             depth: 0,
+        }
+    }
+
+    /// Depth-first walk of the subtrees whose boxes `keep` accepts
+    /// (`keep(lo, hi)`); `leaf(range)` gets each such leaf's payload range
+    /// and returns false to stop. The root is always a node, so every leaf
+    /// has its box tested. For region queries while building scenes: it
+    /// allocates its stack.
+    fn visit_leaves(
+        &self,
+        keep: impl Fn(Vec3, Vec3) -> bool,
+        mut leaf: impl FnMut(Range<usize>) -> bool,
+    ) {
+        if self.root == EMPTY {
+            return;
+        }
+        let mut stack = vec![self.root];
+        while let Some(code) = stack.pop() {
+            if code & LEAF != 0 {
+                if !leaf(leaf_items(code)) {
+                    return;
+                }
+                continue;
+            }
+            let n = &self.nodes[code as usize];
+            for c in 0..NODE_WIDTH {
+                let lo = Vec3::new(n.lo[0][c], n.lo[1][c], n.lo[2][c]);
+                let hi = Vec3::new(n.hi[0][c], n.hi[1][c], n.hi[2][c]);
+                if n.child[c] != EMPTY && keep(lo, hi) {
+                    stack.push(n.child[c]);
+                }
+            }
         }
     }
 
