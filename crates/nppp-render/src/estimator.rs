@@ -173,6 +173,10 @@ pub struct Estimators {
 /// Where the line `o + t d` runs inside the box `b`: its interval of `t`
 /// (over the whole line, both ways), `None` where it misses the box.
 fn line_in_box(o: Vec3, d: Vec3, b: (Vec3, Vec3)) -> Option<(f32, f32)> {
+    // `max` and `min` pass NaN over: a NaN line is refused here.
+    if !(o.is_finite() && d.is_finite()) {
+        return None;
+    }
     let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
     for k in 0..3 {
         if d[k] == 0.0 {
@@ -185,7 +189,6 @@ fn line_in_box(o: Vec3, d: Vec3, b: (Vec3, Vec3)) -> Option<(f32, f32)> {
         t0 = t0.max(a.min(c));
         t1 = t1.min(a.max(c));
     }
-    // Also NaN (a NaN line meets nothing).
     (t0 <= t1).then_some((t0, t1))
 }
 
@@ -1281,7 +1284,8 @@ mod tests {
         /// `line_in_box` gives the line's part inside the box: points of
         /// the interval are in the box, points beyond it (by 1% of the
         /// box) are not, and a line that misses has no interval. Also for
-        /// directions with zero components and unbounded boxes.
+        /// directions with zero components and unbounded boxes; a NaN
+        /// line meets nothing.
         #[test]
         fn line_in_box_is_the_line_inside_the_box(
             o in vec3(), d in vec3(), lo in vec3(), size in vec3(), zero in 0usize..4,
@@ -1300,6 +1304,8 @@ mod tests {
                 (lo, lo + size.abs() + Vec3::splat(0.1))
             };
             let inside = |p: Vec3, slack: f32| p.cmpge(b.0 - slack).all() && p.cmple(b.1 + slack).all();
+            prop_assert_eq!(line_in_box(o * f32::NAN, d, b), None);
+            prop_assert_eq!(line_in_box(o, d * f32::NAN, b), None);
             match line_in_box(o, d, b) {
                 Some((t0, t1)) => {
                     prop_assert!(t0 <= t1);
