@@ -16,16 +16,20 @@ OUT ?= out
 # which: knot (the default scene's diffuse knot), glass (the same knot as
 # smooth glass, data/scenes/cornell-glass.json) or gold (a rough gold
 # conductor, data/scenes/cornell-gold.json) or jade (a dense translucent
-# medium inside a smooth boundary, data/scenes/cornell-jade.json), e.g.
+# medium inside a smooth boundary, data/scenes/cornell-jade.json) or tube
+# (the open U-bent tube of data/scenes/tube.json, models/tube.nppp), e.g.
 # `make bake OBJECT=glass`.
 OBJECT ?= knot
 OBJECT_SCENE_knot := data/scenes/cornell-box.json
 OBJECT_SCENE_glass := data/scenes/cornell-glass.json
 OBJECT_SCENE_gold := data/scenes/cornell-gold.json
 OBJECT_SCENE_jade := data/scenes/cornell-jade.json
-OBJECT_SCENE := $(or $(OBJECT_SCENE_$(OBJECT)),$(error OBJECT=$(OBJECT): choose knot, glass, gold or jade))
-OBJECT_INSTANCE := 6
-OBJECT_NAME := cornell-$(OBJECT)
+OBJECT_SCENE_tube := data/scenes/tube.json
+OBJECT_SCENE := $(or $(OBJECT_SCENE_$(OBJECT)),$(error OBJECT=$(OBJECT): choose knot, glass, gold, jade or tube))
+OBJECT_INSTANCE_tube := 4
+OBJECT_INSTANCE := $(or $(OBJECT_INSTANCE_$(OBJECT)),6)
+OBJECT_NAME_tube := tube
+OBJECT_NAME := $(or $(OBJECT_NAME_$(OBJECT)),cornell-$(OBJECT))
 DATA := $(OUT)/data/$(OBJECT_NAME).nppd
 MODEL := $(OUT)/model/$(OBJECT_NAME)
 ESTIMATOR := models/$(OBJECT_NAME).nppp
@@ -56,6 +60,7 @@ TRAIN_STEPS_glass := --steps 48000
 # where 32 had 1.04x the relMSE at P = 1 (BENCHMARKS.md, "Smaller decoders").
 TRAIN_MODEL_knot := --decoder-width 32
 TRAIN_MODEL_gold := --decoder-width 32
+TRAIN_MODEL_tube := --decoder-width 32
 TRAIN_FLAGS ?= --seed 1 --minutes 0 $(TRAIN_STEPS_$(OBJECT)) $(TRAIN_MODEL_$(OBJECT))
 BAKE_FLAGS ?= --latent-grid 32 --bits 4 --mask-grid 64 --mask-bits 4
 

@@ -3,7 +3,8 @@
 //! it turns off an estimator that loses to path tracing (the default scene's
 //! diffuse knot, 0.3x-0.7x at equal error, BENCHMARKS.md), and it rejects
 //! a configuration whose image mean is wrong however little noise it has
-//! (the tube's estimator at P = 0 renders the tube's inside black).
+//! (the tube's first, under-trained estimator at P = 0 renders the tube's
+//! inside black).
 
 mod common;
 use common::*;
@@ -22,6 +23,26 @@ fn load(name: &str, width: u32) -> nppp_scene::Scene {
     let h = (scene.camera.height as u64 * width as u64 / scene.camera.width as u64).max(1);
     scene.camera.width = width;
     scene.camera.height = h as u32;
+    scene
+}
+
+/// data/scenes/tube.json with the tube's first estimator: 5 minutes of
+/// training on 200,000 rays, whose exits almost never leave the far mouth
+/// (the tube's inside renders black at P = 0) and which loses to PT at
+/// every P >= 1 (0.97x PT's efficiency in its pilots at 8 seeds of 8).
+/// `models/tube.nppp` replaced it (2026-11-28); it stays here as an
+/// estimator `auto` must turn off.
+fn undertrained_tube() -> nppp_scene::Scene {
+    let mut scene = load("tube.json", 0);
+    let tube = scene
+        .instances
+        .iter_mut()
+        .find(|i| i.estimator.is_some())
+        .unwrap();
+    tube.estimator = Some(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/data/tube-undertrained.nppp"),
+    );
     scene
 }
 
@@ -58,12 +79,12 @@ fn trial_at(d: &EstimatorDecision, p: u32) -> &Trial {
 
 #[test]
 fn the_decision_is_the_same_at_any_thread_count_and_turns_off_a_losing_estimator() {
-    // The tube, whose estimator loses at every P >= 1 (0.97x PT's
-    // efficiency in its pilots at 8 seeds of 8). The default scene's knot
-    // served here until rays that cannot enter its sphere took the merged
-    // layout: with picked NEE it is now within 2-4% of PT at equal error,
-    // a tie its pilot puts on either side of the margin.
-    let scene = load("tube.json", 0);
+    // The under-trained tube, whose estimator loses at every P >= 1. The
+    // default scene's knot served here until rays that cannot enter its
+    // sphere took the merged layout: with picked NEE it is now within 2-4%
+    // of PT at equal error, a tie its pilot puts on either side of the
+    // margin.
+    let scene = undertrained_tube();
     let one = pilot(&scene, 1);
     let two = pilot(&scene, 2);
     let three = pilot(&scene, 3);
@@ -116,7 +137,7 @@ fn a_biased_configuration_is_rejected() {
     // PT's light in the tube above its own noise.
     // P = 0 is not tried by default (PilotOptions::min_p and, the tube
     // being diffuse, min_p_light_sampled): ask for it.
-    let scene = load("tube.json", 0);
+    let scene = undertrained_tube();
     let opts = PilotOptions {
         max_bounces: scene.render.max_bounces,
         seed: 3,
