@@ -119,7 +119,7 @@ impl Blas {
     ) {
         let r2 = radius * radius;
         self.bvh.visit_triangles(
-            |lo, hi| center.clamp(lo, hi).distance_squared(center) <= r2,
+            |lo, hi| ball_meets_box(center, radius, lo, hi),
             |[a, b, c]| {
                 let (p, _, _) =
                     nppp_geom::closest_point::closest_point_on_triangle(center, a, b, c);
@@ -231,6 +231,13 @@ pub(crate) fn mapped_box(lo: Vec3, hi: Vec3, map: impl Fn(Vec3) -> Vec3) -> (Vec
         b = b.max(w);
     }
     (a, b)
+}
+
+/// Whether the ball of `center` and `radius` meets the box `lo`..`hi`: the
+/// box's point closest to the centre is inside the ball.
+#[inline]
+pub(crate) fn ball_meets_box(center: Vec3, radius: f32, lo: Vec3, hi: Vec3) -> bool {
+    center.clamp(lo, hi).distance_squared(center) <= radius * radius
 }
 
 fn transformed_bounds(x: &InstanceXform, lo: Vec3, hi: Vec3) -> (Vec3, Vec3) {
@@ -460,9 +467,7 @@ impl Accel {
         if let Some(merged) = &self.merged {
             merged.for_each_triangle_in_ball(center, radius, &mut add);
         }
-        let meets_ball =
-            |lo: Vec3, hi: Vec3| center.clamp(lo, hi).distance_squared(center) <= radius * radius;
-        for i in self.instances_meeting(meets_ball) {
+        for i in self.instances_meeting(|lo, hi| ball_meets_box(center, radius, lo, hi)) {
             if i == skip || self.is_merged(i) {
                 continue;
             }
@@ -551,7 +556,7 @@ mod tests {
             let c = Vec3::new(rng.uniform(), rng.uniform(), rng.uniform()) * 40.0
                 - Vec3::new(20.0, 5.0, 20.0);
             let r = 0.5 + rng.uniform() * 4.0 * (k % 3) as f32;
-            let meets = |lo: Vec3, hi: Vec3| c.clamp(lo, hi).distance_squared(c) <= r * r;
+            let meets = |lo: Vec3, hi: Vec3| ball_meets_box(c, r, lo, hi);
             let want: Vec<usize> = (0..instances.len())
                 .filter(|&i| meets(accel.instance_bounds[i].0, accel.instance_bounds[i].1))
                 .collect();

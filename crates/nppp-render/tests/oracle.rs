@@ -376,15 +376,7 @@ fn sphere_cutting_the_floor_and_camera_inside_the_sphere_match_path_tracing() {
         // object would show.
         for by in 0..4 {
             for bx in 0..4 {
-                let block = |img: &nppp_render::Image| {
-                    let mut s = 0.0f64;
-                    for y in by * 8..by * 8 + 8 {
-                        for x in bx * 8..bx * 8 + 8 {
-                            s += img.get(x, y).iter().map(|v| *v as f64).sum::<f64>();
-                        }
-                    }
-                    s / 64.0
-                };
+                let block = |img| region_sum(img, bx * 8..bx * 8 + 8, by * 8..by * 8 + 8) / 64.0;
                 let (a, b) = (block(&or), block(&pt));
                 assert!(
                     (a - b).abs() <= 0.06 * b + 0.01,
@@ -403,25 +395,50 @@ fn sphere_cutting_the_floor_and_camera_inside_the_sphere_match_path_tracing() {
 /// four seeds), where PT and Mitsuba 3 agree. An exit ray whose line
 /// meets other geometry inside the sphere near the object now starts at
 /// the object's last crossing of the line (`Estimators::exit_origin`).
-#[test]
-fn exits_of_an_object_lying_on_the_floor_are_not_stopped_by_it() {
-    let json = format!(
+/// data/meshes/tube.obj lying on a floor at y = -0.25, lit by a small
+/// lamp beside one mouth, seen by `camera` (scene-format JSON): the
+/// layout of an independent check (2026-11-28), whose floor lies inside
+/// the tube's bounding sphere.
+fn tube_on_a_floor(
+    camera: &str,
+    floor_albedo: f32,
+    tube_albedo: [f32; 3],
+    lamp: [f32; 3],
+) -> String {
+    format!(
         r#"{{
-  "camera": {{"position": [-3.2, 1.6, -2.4], "look_at": [-0.2, -0.1, 0.4], "fov_y_deg": 45, "width": 48, "height": 36}},
-  "materials": {{"white": {{"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}}, "tube": {{"type": "diffuse", "albedo": [0.7, 0.6, 0.5]}},
-                 "lamp": {{"type": "emitter", "radiance": [60, 55, 45]}}}},
+  "camera": {camera},
+  "materials": {{"floor": {{"type": "diffuse", "albedo": [{floor_albedo}, {floor_albedo}, {floor_albedo}]}}, "tube": {{"type": "diffuse", "albedo": {tube_albedo:?}}},
+                 "lamp": {{"type": "emitter", "radiance": {lamp:?}}}}},
   "meshes": {{
     "tube": {{"obj": "{}"}},
     "floor": {{"quad": [[-4, -0.25, 4], [4, -0.25, 4], [4, -0.25, -4], [-4, -0.25, -4]]}},
     "lamp": {{"quad": [[-2, -0.1, 0.1], [-2, 0.3, 0.1], [-2, 0.3, 0.5], [-2, -0.1, 0.5]]}}
   }},
   "instances": [
-    {{"mesh": "floor", "material": "white"}},
+    {{"mesh": "floor", "material": "floor"}},
     {{"mesh": "lamp", "material": "lamp"}},
     {{"mesh": "tube", "material": "tube", "estimator": "no-file-needed-for-the-oracle.nppp"}}
   ]
 }}"#,
         repo_root().join("data/meshes/tube.obj").display()
+    )
+}
+
+/// The sum of all channels of `img` over the pixels `xs` x `ys`.
+fn region_sum(img: &nppp_render::Image, xs: std::ops::Range<u32>, ys: std::ops::Range<u32>) -> f64 {
+    ys.flat_map(|y| xs.clone().map(move |x| (x, y)))
+        .map(|(x, y)| img.get(x, y).iter().map(|v| *v as f64).sum::<f64>())
+        .sum()
+}
+
+#[test]
+fn exits_of_an_object_lying_on_the_floor_are_not_stopped_by_it() {
+    let json = tube_on_a_floor(
+        r#"{"position": [-3.2, 1.6, -2.4], "look_at": [-0.2, -0.1, 0.4], "fov_y_deg": 45, "width": 48, "height": 36}"#,
+        0.8,
+        [0.7, 0.6, 0.5],
+        [60.0, 55.0, 45.0],
     );
     let (pt, _) = render_mode(&json, EstimatorMode::Off, 1, 1024, 5, 1);
     let (or, st) = render_mode(&json, EstimatorMode::Oracle, 1, 1024, 5, 2);
@@ -445,37 +462,17 @@ fn exits_of_an_object_lying_on_the_floor_are_not_stopped_by_it() {
 /// within 0.2%. They now start at the tube's last crossing of their line.
 #[test]
 fn exits_falling_to_the_floor_an_object_lies_on_reach_the_floor() {
-    let json = format!(
-        r#"{{
-  "camera": {{"position": [1.2, 1.6, -2.6], "look_at": [0, 0, 0.6], "fov_y_deg": 35, "width": 48, "height": 36}},
-  "materials": {{"tube": {{"type": "diffuse", "albedo": [0.9, 0.9, 0.9]}}, "grey": {{"type": "diffuse", "albedo": [0.6, 0.6, 0.6]}},
-                 "lamp": {{"type": "emitter", "radiance": [60, 50, 30]}}}},
-  "meshes": {{
-    "tube": {{"obj": "{}"}},
-    "floor": {{"quad": [[-4, -0.25, 4], [4, -0.25, 4], [4, -0.25, -4], [-4, -0.25, -4]]}},
-    "lamp": {{"quad": [[-2, -0.1, 0.1], [-2, 0.3, 0.1], [-2, 0.3, 0.5], [-2, -0.1, 0.5]]}}
-  }},
-  "instances": [
-    {{"mesh": "floor", "material": "grey"}},
-    {{"mesh": "lamp", "material": "lamp"}},
-    {{"mesh": "tube", "material": "tube", "estimator": "no-file-needed-for-the-oracle.nppp"}}
-  ]
-}}"#,
-        repo_root().join("data/meshes/tube.obj").display()
+    let json = tube_on_a_floor(
+        r#"{"position": [1.2, 1.6, -2.6], "look_at": [0, 0, 0.6], "fov_y_deg": 35, "width": 48, "height": 36}"#,
+        0.6,
+        [0.9, 0.9, 0.9],
+        [60.0, 50.0, 30.0],
     );
     let (pt, _) = render_mode(&json, EstimatorMode::Off, 0, 512, 2, 1);
     let (or, st) = render_mode(&json, EstimatorMode::Oracle, 0, 512, 2, 2);
     assert!(st.estimators.entries > 10_000, "{:?}", st.estimators);
     // The 8 x 8 block of the full-size image, at half its size.
-    let block = |img: &nppp_render::Image| {
-        let mut s = 0.0f64;
-        for y in 16..20 {
-            for x in 40..44 {
-                s += img.get(x, y).iter().map(|v| *v as f64).sum::<f64>();
-            }
-        }
-        s
-    };
+    let block = |img| region_sum(img, 40..44, 16..20);
     let (a, b) = (block(&or), block(&pt));
     assert!(
         (a / b - 1.0).abs() < 0.15,
