@@ -193,9 +193,9 @@ impl PackedLayer {
     }
 
     /// Walks the output in blocks of `R` rows x up to `V` column blocks
-    /// (`V * LANES` outputs), the rows left over four (where `R` is more)
-    /// and then one at a time, and a narrow
-    /// layer's last columns in fewer blocks. Every element is computed by
+    /// (`V * LANES` outputs), the rows left over four at a time (where `R`
+    /// is more) and then one at a time, and a narrow layer's last columns
+    /// in fewer blocks. Every element is computed by
     /// [`x86::block`] with the same sum order, so a row's result does not
     /// depend on the block it falls in.
     ///
@@ -411,7 +411,9 @@ mod tests {
     #[test]
     fn matches_the_product_on_every_isa_and_shape() {
         for isa in KernelIsa::available() {
-            for (inputs, outputs, relu) in [(32, 64, true), (64, 13, false), (7, 80, true), (64, 48, true), (3, 16, false), (32, 32, true), (32, 13, false)] {
+            for (inputs, outputs, relu) in
+                [(32, 64, true), (64, 13, false), (7, 80, true), (64, 48, true), (3, 16, false), (32, 32, true), (32, 13, false)]
+            {
                 let (l, w, b) = layer(inputs, outputs, relu, 7);
                 let stride = inputs + 3;
                 for rows in [0usize, 1, 2, 3, 4, 5, 8, 9, 17, 70] {
