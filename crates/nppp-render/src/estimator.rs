@@ -1159,23 +1159,25 @@ impl Estimators {
         let Some(other) = self.other_geometry_in_sphere[inst as usize] else {
             return middle;
         };
-        // Along the line from the middle (t = 0): where the object's box
-        // (its own, tight in its space) holds the crossing, padded far
-        // above rounding, and where the line meets the other geometry's
-        // box (world space: its distances are the object's times the
-        // scale).
+        // Along the line from the middle (t = 0): where it meets the other
+        // geometry's box (world space: its distances are the object's
+        // times the scale; most lines miss it, so it is asked first), and
+        // where the object's box (its own, tight in its space) holds the
+        // crossing, padded far above rounding.
+        let x = &accel.instances[inst as usize];
+        let (o, d) = (x.point_to_world(middle), x.dir_to_world(e.direction));
+        let Some((o0, o1)) = line_in_box(o, d, other) else {
+            return middle;
+        };
         let Some((b0, b1)) = line_in_box(middle, e.direction, accel.blas[est.mesh].bounds) else {
             return middle;
         };
         let slack = 1e-4 * est.sphere.radius;
-        let x = &accel.instances[inst as usize];
         let (lo, hi) = (
             (b0.min(0.0) - slack) * x.scale,
             (b1.max(0.0) + slack) * x.scale,
         );
-        let (o, d) = (x.point_to_world(middle), x.dir_to_world(e.direction));
-        let meets_other = line_in_box(o, d, other).is_some_and(|(o0, o1)| o0 <= hi && o1 >= lo);
-        if !meets_other {
+        if o0 > hi || o1 < lo {
             return middle;
         }
         stats.exits_from_object += 1;
